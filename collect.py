@@ -1,0 +1,419 @@
+"""Collect expert demonstrations for imitation learning, one `.npz` per episode.
+
+Runs the privileged oracle expert of `expert.py` (our stand-in for the paper's M3 (Oracle)
+data-generating policy, Appendix C.1) on `train` episodes in parallel worker processes and records,
+per step, what the paper records: observations, actions, rewards and the executing skill. The
+expert executes DART-noised actions (`--noise`) but the clean action is stored as the label.
+
+    python collect.py --episodes 1000 --out data/demos --workers 2 --seed 0
+    python collect.py --episodes 1000 --out data/demos --shard 0/2      # machine A
+    python collect.py --episodes 1000 --out data/demos --shard 1/2      # machine B: same DIR layout
+    python collect.py --stats data/demos
+
+Determinism: episode index k always runs `env.make_episodes("train", ..., seed=S)[k]` with a reset
+seed derived from (S, k), so a file's bytes never depend on the worker count. Without
+`--keep-failed` only successful demonstrations are written: indices are judged in order and the
+first N successes are kept (a shard i/n takes the indices k = i (mod n) and its share of N).
+Files are written to a temporary name and renamed, so rerunning the same command after a kill
+resumes where it stopped.
+
+File format (readable with `numpy.load(path, allow_pickle=False)`), T steps:
+    depth uint8 (T, H, W), state float32 (T, 21), action float32 (T, 10) clean expert action,
+    skill int8 (T,), receptacle int8 (T,) auxiliary label of the observed state,
+    reward float32 (T,) reward received after the action;
+    scalars: success bool, layout int, difficulty str, seed int (reset seed), index int.
+"""
+import argparse
+import ast
+import dataclasses
+import inspect
+import itertools
+import json
+import multiprocessing as mp
+import os
+import platform
+import re
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+import env
+import expert
+
+
+@dataclass
+class Config:
+    episodes: int = 1000
+    """number of demonstrations to write (successful ones unless --keep-failed)"""
+    out: str = "data/demos"
+    """output directory: ep_{k:06d}.npz files and meta.json"""
+    workers: int = 2
+    """worker processes, each with its own simulator"""
+    seed: int = 0
+    """dataset seed: selects the train episodes and the reset seeds"""
+    noise: float = 0.0
+    """DART noise scale injected into the executed actions (the stored action stays clean)"""
+    keep_failed: bool = False
+    """also keep demonstrations in which the expert failed"""
+    shard: str = "0/1"
+    """i/n: write only episode indices k with k % n == i (split one dataset over n machines)"""
+    depth_size: int = 0
+    """head camera resolution in pixels; 0 keeps the env.EnvConfig default"""
+    max_steps: int = 0
+    """episode step limit; 0 keeps the env.EnvConfig default"""
+    max_draws: int = 0
+    """give up after drawing this many episode indices (0: 10 x episodes + 20)"""
+    log_every: float = 10.0
+    """seconds between progress lines"""
+    stats: str = ""
+    """print statistics of the dataset in this directory and exit"""
+
+
+FORMAT_VERSION = 1
+EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
+TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.tmp$")
+# meta.json entries that must agree before new episodes are added to an existing directory
+MUST_MATCH = ("format", "env_config", "seed", "noise", "keep_failed", "plan")
+
+
+def episode_path(out, k):
+    return os.path.join(out, f"ep_{k:06d}.npz")
+
+
+def reset_seed(seed, k):
+    """Reset seed of episode k: a function of (dataset seed, index) only, never of the schedule."""
+    return int(np.random.SeedSequence([seed, k]).generate_state(1)[0])
+
+
+# --- validation ---
+
+STEP_ARRAYS = {"depth": np.uint8, "state": np.float32, "action": np.float32,
+               "skill": np.int8, "receptacle": np.int8, "reward": np.float32}
+TRAILING_SHAPE = {"state": (env.STATE_DIM,), "action": (env.ACTION_DIM,),
+                  "skill": (), "receptacle": (), "reward": ()}
+SCALARS = {"success": "b", "layout": "iu", "difficulty": "U", "seed": "iu", "index": "iu"}
+
+
+def load_episode(path):
+    """Load and validate one demonstration file -> dict of numpy arrays; ValueError naming the file."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in f.files}
+    except Exception as err:  # zip, zlib, pickle or OS errors all mean the same thing here
+        raise ValueError(f"{path}: not a readable demonstration .npz ({type(err).__name__}: {err})") from err
+    missing = sorted((set(STEP_ARRAYS) | set(SCALARS)) - set(data))
+    if missing:
+        raise ValueError(f"{path}: missing keys {missing}; not a demonstration written by collect.py")
+    T = len(data["action"]) if data["action"].ndim else 0
+    if T < 1:
+        raise ValueError(f"{path}: expected at least one step, got action of shape {data['action'].shape}")
+    for key, dtype in STEP_ARRAYS.items():
+        a = data[key]
+        if a.dtype != dtype:
+            raise ValueError(f"{path}: {key} has dtype {a.dtype}, expected {np.dtype(dtype)}")
+        want = (T, *data["depth"].shape[1:]) if key == "depth" else (T, *TRAILING_SHAPE[key])
+        if a.shape != want or (key == "depth" and a.ndim != 3):
+            raise ValueError(f"{path}: {key} has shape {a.shape}, expected {want} (T={T}, depth (T, H, W))")
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise ValueError(f"{path}: {key} has non-finite values")
+    for key, kinds in SCALARS.items():
+        if data[key].shape != () or data[key].dtype.kind not in kinds:
+            raise ValueError(f"{path}: {key} should be a scalar of kind {kinds!r}, "
+                             f"got shape {data[key].shape} dtype {data[key].dtype}")
+    if not (0 <= data["skill"].min() and data["skill"].max() < len(env.SKILLS)):
+        raise ValueError(f"{path}: skill ids outside [0, {len(env.SKILLS)})")
+    if not (0 <= data["receptacle"].min() and data["receptacle"].max() <= len(env.RECEPTACLES)):
+        raise ValueError(f"{path}: receptacle labels outside [0, {len(env.RECEPTACLES)}]")
+    if str(data["difficulty"]) not in env.DIFFICULTIES:
+        raise ValueError(f"{path}: difficulty {data['difficulty']!r} not in {env.DIFFICULTIES}")
+    return data
+
+
+# --- one episode (runs in a worker) ---
+
+_worker_env = {}   # per process: the simulator, built once on the first job
+
+
+def record_episode(e, episode, seed, noise):
+    """Run the oracle expert on one episode -> dict of arrays in the file format."""
+    x = expert.Expert(e, plan="oracle", seed=seed, noise=noise)
+    obs, info = e.reset(seed=seed, options={"episode": episode})
+    x.reset()
+    steps = {k: [] for k in STEP_ARRAYS}
+    reward, done = 0.0, False
+    while not done:
+        action, skill = x.act(obs, reward)
+        steps["depth"].append(env.depth_to_uint8(obs["depth"]))
+        steps["state"].append(env.state_vector(obs))
+        steps["action"].append(action)
+        steps["skill"].append(skill)
+        steps["receptacle"].append(info["receptacle"])   # label of the state this obs shows
+        obs, reward, terminated, truncated, info = e.step(x.noisy(action))
+        steps["reward"].append(reward)
+        done = terminated or truncated
+    data = {k: np.asarray(v, dtype=STEP_ARRAYS[k]) for k, v in steps.items()}
+    data.update(success=np.bool_(info["success"]), layout=np.int64(episode.layout),
+                difficulty=np.str_(episode.difficulty), seed=np.int64(seed), index=np.int64(episode.index))
+    return data
+
+
+def collect_job(job):
+    """Worker entry: record episode k to its temporary file -> (k, success, steps)."""
+    k, episode, seed, noise, env_kwargs, out = job
+    key = json.dumps(env_kwargs, sort_keys=True)
+    if key not in _worker_env:
+        _worker_env.clear()
+        _worker_env[key] = env.RearrangeEnv(**env_kwargs)
+    data = record_episode(_worker_env[key], episode, seed, noise)
+    with open(episode_path(out, k) + ".tmp", "wb") as f:   # a file object: savez adds no suffix
+        np.savez_compressed(f, **data)
+    return k, bool(data["success"]), len(data["action"])
+
+
+# --- the dataset directory ---
+
+def env_kwargs_of(cfg):
+    kwargs = {}
+    if cfg.depth_size:
+        kwargs["depth_size"] = cfg.depth_size
+    if cfg.max_steps:
+        kwargs["max_steps"] = cfg.max_steps
+    return kwargs
+
+
+def make_meta(cfg, env_kwargs):
+    return {
+        "format": FORMAT_VERSION,
+        "env_config": dataclasses.asdict(env.EnvConfig(**env_kwargs)),
+        "state_layout": [[k, n] for k, n in env.STATE_LAYOUT],
+        "skills": list(env.SKILLS),
+        "receptacles": list(env.RECEPTACLES),
+        "difficulties": list(env.DIFFICULTIES),
+        "split": "train",
+        "plan": "oracle",
+        "seed": cfg.seed,
+        "noise": cfg.noise,
+        "keep_failed": cfg.keep_failed,
+        "versions": {"python": platform.python_version(), "numpy": np.__version__,
+                     "mujoco": mujoco.__version__},
+    }
+
+
+def check_or_write_meta(out, meta):
+    """Write meta.json, or refuse a directory that holds another dataset."""
+    path = os.path.join(out, "meta.json")
+    meta = json.loads(json.dumps(meta))   # tuples -> lists, as they come back from disk
+    if not os.path.exists(path):
+        tmp = path + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(meta, f, indent=2)
+        os.replace(tmp, path)
+        return
+    try:
+        with open(path) as f:
+            old = json.load(f)
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: unreadable meta.json ({err})") from err
+    diff = [k for k in MUST_MATCH if old.get(k) != meta[k]]
+    if diff:
+        detail = "; ".join(f"{k}: directory has {old.get(k)!r}, this run wants {meta[k]!r}" for k in diff)
+        raise ValueError(f"{path} records another dataset ({detail}). Use another --out, or the "
+                         f"same settings to resume.")
+    if old.get("versions") != meta["versions"]:
+        print(f"note: {path} was written with {old.get('versions')}, now {meta['versions']}")
+
+
+def scan_dir(out, shard_i, shard_n):
+    """Validate every episode file in out -> {k: summary}; remove this shard's stale temporary files."""
+    have = {}
+    for name in sorted(os.listdir(out)):
+        path = os.path.join(out, name)
+        temp = TEMP_FILE.match(name)
+        if temp and int(temp.group(1)) % shard_n == shard_i:
+            os.remove(path)   # left by a killed run: its episode is simply run again
+            continue
+        if not name.endswith(".npz"):
+            continue
+        m = EPISODE_FILE.match(name)
+        if not m:
+            raise ValueError(f"{path}: foreign .npz in the dataset directory (expected ep_NNNNNN.npz)")
+        data = load_episode(path)
+        have[int(m.group(1))] = {"success": bool(data["success"]), "index": int(data["index"]),
+                                 "seed": int(data["seed"]), "layout": int(data["layout"]),
+                                 "difficulty": str(data["difficulty"]), "steps": len(data["action"])}
+    return have
+
+
+def check_existing(out, k, summary, episode, seed):
+    want = {"index": k, "seed": seed, "layout": int(episode.layout), "difficulty": episode.difficulty}
+    got = {key: summary[key] for key in want}
+    if got != want:
+        raise ValueError(f"{episode_path(out, k)}: holds {got}, but this dataset's episode {k} is {want} "
+                         f"(a file from another dataset?)")
+
+
+def episode_source(split, seed):
+    """k -> the k-th episode of make_episodes(split, ..., seed), growing the list as needed."""
+    episodes = []
+
+    def get(k):
+        nonlocal episodes
+        if k >= len(episodes):
+            episodes = env.make_episodes(split, max(k + 1, 2 * len(episodes), 64), seed=seed)
+        return episodes[k]
+    return get
+
+
+# --- main loop ---
+
+def parse_shard(shard):
+    try:
+        i, n = (int(v) for v in shard.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard expects i/n such as 0/2, got {shard!r}") from None
+    if not 0 <= i < n:
+        raise ValueError(f"--shard {shard}: need 0 <= i < n")
+    return i, n
+
+
+def collect(cfg):
+    """Write cfg.episodes demonstrations (this shard's share of them) to cfg.out; returns a summary."""
+    shard_i, shard_n = parse_shard(cfg.shard)
+    need = cfg.episodes // shard_n + (shard_i < cfg.episodes % shard_n)
+    max_draws = cfg.max_draws or 10 * need + 20
+    env_kwargs = env_kwargs_of(cfg)
+    os.makedirs(cfg.out, exist_ok=True)
+    check_or_write_meta(cfg.out, make_meta(cfg, env_kwargs))
+    have = scan_dir(cfg.out, shard_i, shard_n)
+    episode_of = episode_source("train", cfg.seed)
+    indices = itertools.count(shard_i, shard_n)
+    pool = mp.get_context("spawn").Pool(cfg.workers) if cfg.workers > 1 else None
+    # (k, None for a file already there | AsyncResult | job to run here), in index order; judged in
+    # that order, with enough in flight that a long episode at the head does not idle the workers
+    pending = deque()
+    kept = kept_here = drawn = ran = ran_success = steps = 0
+    t0 = last_log = time.time()
+    try:
+        while kept < need:
+            while not pending or (len(pending) < 8 * cfg.workers and kept + len(pending) < need):
+                if drawn >= max_draws:
+                    raise RuntimeError(f"only {kept}/{need} demonstrations after {drawn} episode indices: "
+                                       f"the expert rarely succeeds with these settings (see --max-draws)")
+                k = next(indices)
+                drawn += 1
+                episode, seed = episode_of(k), reset_seed(cfg.seed, k)
+                if k in have:
+                    check_existing(cfg.out, k, have[k], episode, seed)
+                    pending.append((k, None))
+                    continue
+                job = (k, episode, seed, cfg.noise, env_kwargs, cfg.out)
+                pending.append((k, pool.apply_async(collect_job, (job,)) if pool else job))
+            k, work = pending.popleft()
+            if work is None:
+                success = have[k]["success"]
+            else:
+                _, success, n_steps = work.get() if pool else collect_job(work)
+                ran, ran_success, steps = ran + 1, ran_success + success, steps + n_steps
+                tmp = episode_path(cfg.out, k) + ".tmp"
+                if success or cfg.keep_failed:
+                    os.replace(tmp, episode_path(cfg.out, k))   # atomic: a file is whole or absent
+                else:
+                    os.remove(tmp)
+            kept += success or cfg.keep_failed
+            kept_here += work is not None and (success or cfg.keep_failed)
+            now = time.time()
+            if now - last_log >= cfg.log_every or kept == need:
+                last_log, minutes = now, max(now - t0, 1e-9) / 60
+                eta = f"{(need - kept) / kept_here * minutes:.1f} min" if kept_here else "?"
+                print(f"[{kept:5d}/{need}] {ran / minutes:6.1f} ep/min, success {ran_success}/{ran} run here, "
+                      f"{steps / minutes / 60:6.0f} steps/s, eta {eta}", flush=True)
+    finally:
+        if pool:   # pending is empty once the last needed episode is in; else stop the workers now
+            pool.terminate() if pending else pool.close()
+            pool.join()
+        for k, work in pending:   # in flight when we stopped: drop the partial results
+            if work is not None and os.path.exists(episode_path(cfg.out, k) + ".tmp"):
+                os.remove(episode_path(cfg.out, k) + ".tmp")
+    return {"kept": kept, "drawn": drawn, "ran": ran, "ran_success": ran_success,
+            "seconds": time.time() - t0}
+
+
+# --- statistics ---
+
+def dataset_stats(out):
+    """Summary of a dataset directory (every file validated) -> dict."""
+    names = sorted(n for n in os.listdir(out) if n.endswith(".npz"))
+    skills = np.zeros(len(env.SKILLS), np.int64)
+    by_diff = {d: [0, 0] for d in env.DIFFICULTIES}
+    lengths, size = [], os.path.getsize(os.path.join(out, "meta.json"))
+    for name in names:
+        path = os.path.join(out, name)
+        if not EPISODE_FILE.match(name):
+            raise ValueError(f"{path}: foreign .npz in the dataset directory (expected ep_NNNNNN.npz)")
+        data = load_episode(path)
+        skills += np.bincount(data["skill"], minlength=len(env.SKILLS))
+        by_diff[str(data["difficulty"])][0] += 1
+        by_diff[str(data["difficulty"])][1] += bool(data["success"])
+        lengths.append(len(data["action"]))
+        size += os.path.getsize(path)
+    n = len(names)
+    return {"episodes": n, "steps": int(sum(lengths)),
+            "steps_min_mean_max": [min(lengths, default=0), float(np.mean(lengths)) if n else 0.0,
+                                   max(lengths, default=0)],
+            "skill_steps": {s: int(c) for s, c in zip(env.SKILLS, skills)},
+            "success": sum(v[1] for v in by_diff.values()) / max(n, 1),
+            "by_difficulty": {d: {"episodes": v[0], "success": v[1] / max(v[0], 1)} for d, v in by_diff.items()},
+            "bytes": size}
+
+
+def print_stats(out):
+    s = dataset_stats(out)
+    lo, mean, hi = s["steps_min_mean_max"]
+    print(f"{out}: {s['episodes']} episodes, {s['steps']} steps (per episode min {lo}, mean {mean:.0f}, max {hi})")
+    print(f"success {100 * s['success']:.1f}%")
+    total = max(s["steps"], 1)
+    print("skill steps: " + ", ".join(f"{k} {v} ({100 * v / total:.1f}%)" for k, v in s["skill_steps"].items()))
+    for d, v in s["by_difficulty"].items():
+        print(f"  {d:9s} {v['episodes']:6d} episodes, success {100 * v['success']:.1f}%")
+    print(f"size on disk {s['bytes'] / 2**20:.1f} MiB ({s['bytes'] / 2**10 / max(s['episodes'], 1):.0f} KiB/episode)")
+    return s
+
+
+# --- command line ---
+
+def field_docs(cls):
+    """Field name -> the docstring written under it, for --help."""
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
+            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    docs = field_docs(Config)
+    for f in dataclasses.fields(Config):
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(f.default, bool):
+            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs[f.name])
+        else:
+            p.add_argument(flag, type=type(f.default), default=f.default, help=docs[f.name])
+    return Config(**vars(p.parse_args(argv)))
+
+
+if __name__ == "__main__":
+    cfg = parse_args()
+    try:
+        if cfg.stats:
+            print_stats(cfg.stats)
+        else:
+            print(f"collecting {cfg.episodes} demonstrations into {cfg.out} "
+                  f"(shard {cfg.shard}, {cfg.workers} workers, seed {cfg.seed}, noise {cfg.noise})", flush=True)
+            r = collect(cfg)
+            print(f"done: {r['kept']} demonstrations in {cfg.out}; ran {r['ran']} episodes "
+                  f"({r['ran_success']} successful) in {r['seconds'] / 60:.1f} min", flush=True)
+    except (ValueError, RuntimeError, FileNotFoundError) as err:
+        sys.exit(f"error: {err}")

@@ -1,0 +1,423 @@
+"""Evaluate policies by rollouts: the paper's Table 1 (success by difficulty) and Table 2 (perturbation).
+
+A policy is a checkpoint written by train.py, several checkpoints of one method joined by commas
+(training seeds: the table shows mean +- std over them), or the scripted expert: `expert:oracle`
+(our M3 (Oracle): the plan comes from the simulator) or `expert:fixed` (nav, pick, nav, place,
+like TP-SRL / M3). Episodes come from a fixed list, env.make_episodes(split, n, seed=0), and each
+rollout's reset seed is a function of (split, episode, rollout seed), so numbers are comparable
+across runs and do not depend on the number of workers.
+
+    python evaluate.py --policy ckpt/st.pt --policy expert:oracle --policy expert:fixed \\
+                       --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
+    python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
+    python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
+    python evaluate.py --policy expert:oracle --episodes 2 --video results/video
+
+Table 1 (Sec. 5.3): success rate in % on All, Easy, Hard and Very Hard episodes. With one checkpoint
+the +- is over rollout seeds (--seeds), with several over training seeds. Table 2 (Sec. 5.4): on
+episodes whose target starts in a closed drawer, the rate of picking the target and the accuracy
+of the predicted skill against the ground-truth rule of Appendix D (info["skill_gt"]), without
+and with the perturbation (the drawer snaps shut once after it has been open for a while).
+Results go to --out (JSON with every rollout) and the same name with .md (the tables).
+"""
+import argparse
+import ast
+import dataclasses
+import inspect
+import json
+import multiprocessing as mp
+import os
+import platform
+import struct
+import sys
+import time
+import zlib
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+import torch
+
+import env
+import expert
+import model
+
+
+@dataclass
+class Config:
+    policy: list = field(default_factory=list)
+    """a checkpoint, checkpoints joined by commas (training seeds), expert:oracle or expert:fixed; repeatable"""
+    split: str = "unseen"
+    """unseen, seen, or both (side by side, as in the paper)"""
+    episodes: int = 400
+    """episodes per split (with --perturb: episodes whose target starts in a closed drawer)"""
+    seeds: int = 1
+    """rollout seeds per checkpoint (the +- of a single checkpoint is over these)"""
+    workers: int = 2
+    """worker processes, each with its own simulators and policies"""
+    perturb: bool = False
+    """run the perturbation test (Table 2) instead of Table 1"""
+    max_steps: int = 0
+    """episode step limit for every method; 0 keeps each method's env config"""
+    depth_size: int = 0
+    """head camera resolution for the experts (checkpoints keep their own); 0 keeps the env default"""
+    out: str = "results/eval.json"
+    """JSON results; the Markdown tables go next to it with the suffix .md"""
+    video: str = ""
+    """directory for a few rollouts written as PNG frames (empty: no video)"""
+    video_episodes: int = 2
+    """episodes per method written to --video"""
+    log_every: float = 10.0
+    """seconds between progress lines"""
+
+
+EVAL_SEED = 0                                   # fixed seed of the evaluation episode lists
+SPLIT_CODES = {"train": 0, "seen": 1, "unseen": 2}
+GROUPS = (("all", "All"), ("easy", "Easy"), ("hard", "Hard"), ("very_hard", "Very Hard"))
+CONDITIONS = ("no_perturb", "perturb")
+
+
+def reset_seed(split, index, rollout_seed):
+    """Reset seed of one rollout: a function of the episode and the rollout seed only."""
+    return int(np.random.SeedSequence([EVAL_SEED, SPLIT_CODES[split], index, rollout_seed]).generate_state(1)[0])
+
+
+def target_in_drawer(episode):
+    return episode.obj_receptacle > 0 and env.RECEPTACLES[episode.obj_receptacle - 1].startswith("drawer")
+
+
+def eval_episodes(split, n, perturb):
+    """The fixed episode list: the first n of the split, or with perturb its first n target-in-drawer ones."""
+    if not perturb:
+        return env.make_episodes(split, n, seed=EVAL_SEED)
+    drawn = 4 * n
+    while True:
+        chosen = [ep for ep in env.make_episodes(split, drawn, seed=EVAL_SEED) if target_in_drawer(ep)]
+        if len(chosen) >= n:
+            return chosen[:n]
+        if drawn > 100 * n + 1000:
+            raise ValueError(f"only {len(chosen)} of the first {drawn} {split} episodes start in a closed drawer")
+        drawn *= 2
+
+
+# --- policies ---
+
+def load_checkpoint(path):
+    """model.load_policy with clear errors: FileNotFoundError or ValueError naming the path."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        return model.load_policy(path, device="cpu")
+    except Exception as err:  # whatever torch.load or the model raise, the cause is the file
+        if isinstance(err, ValueError) and path in str(err):
+            raise
+        reason = (str(err).strip().splitlines() or [""])[0]
+        raise ValueError(f"{path}: not a policy checkpoint written by train.py "
+                         f"({type(err).__name__}: {reason})") from err
+
+
+def parse_method(spec, cfg):
+    """One --policy value -> {name, spec, variant, members: [(ref, env_config)]}."""
+    overrides = {"max_steps": cfg.max_steps} if cfg.max_steps else {}
+    if spec.startswith("expert:"):
+        plan = spec.split(":", 1)[1]
+        if plan not in ("oracle", "fixed"):
+            raise ValueError(f"unknown expert plan in {spec!r}: expected expert:oracle or expert:fixed")
+        kwargs = dict(overrides, **({"depth_size": cfg.depth_size} if cfg.depth_size else {}))
+        return {"name": spec, "spec": spec, "variant": f"expert_{plan}",
+                "members": [(spec, dataclasses.asdict(env.EnvConfig(**kwargs)))]}
+    members, variants = [], set()
+    for path in spec.split(","):
+        policy = load_checkpoint(path)
+        variants.add(policy.variant)
+        members.append((path, dict(policy.env_config, **overrides)))
+    if len(variants) > 1:
+        raise ValueError(f"{spec}: checkpoints of different variants {sorted(variants)} in one row")
+    variant = variants.pop()
+    return {"name": f"{variant} ({spec})", "spec": spec, "variant": variant, "members": members}
+
+
+# --- one rollout ---
+
+def rollout(policy, env_instance, episode, seed, on_step=None):
+    """Run one episode with a policy (reset(), act(obs, reward) -> (action, skill)) -> result dict.
+
+    The reward passed to act is the reward of the previous step (0 on the first), which only the
+    Decision Transformer baselines read. Skill accuracy compares the policy's skill for an
+    observation with the Appendix D label of the same state (the info that came with the obs).
+    """
+    obs, info = env_instance.reset(seed=seed, options={"episode": episode})
+    policy.reset()
+    reward, total, steps, predicted, correct, done = 0.0, 0.0, 0, 0, 0, False
+    while not done:
+        if on_step:
+            on_step(obs)
+        action, skill = policy.act(obs, reward)
+        predicted += skill >= 0                # variants without a skill module return -1
+        correct += int(skill) == int(info["skill_gt"])
+        obs, reward, terminated, truncated, info = env_instance.step(action)
+        total, steps, done = total + reward, steps + 1, terminated or truncated
+    return {"index": int(episode.index), "difficulty": episode.difficulty, "kind": episode.kind,
+            "success": bool(info["success"]), "picked": bool(info["picked"]), "perturbed": bool(info["perturbed"]),
+            "failure": info["failure"], "steps": steps, "skill_predicted": int(predicted), "skill_correct": correct,
+            "return": float(total)}
+
+
+_envs, _policies = {}, {}   # per worker process: built on first use, reused for later jobs
+
+
+def actor(ref, env_config):
+    """(policy, env) for a method member on an env config, built once per process."""
+    env_key = json.dumps(env_config, sort_keys=True)
+    if env_key not in _envs:
+        _envs[env_key] = env.RearrangeEnv(**env_config)
+    e = _envs[env_key]
+    policy_key = (ref, env_key) if ref.startswith("expert:") else ref   # an expert reads its env
+    if policy_key not in _policies:
+        _policies[policy_key] = (expert.Expert(e, plan=ref.split(":", 1)[1]) if ref.startswith("expert:")
+                                 else load_checkpoint(ref))
+    return _policies[policy_key], e
+
+
+def rollout_job(job):
+    """Worker entry: job = (tags, ref, env_config, episode, seed) -> tags + rollout result."""
+    tags, ref, env_config, episode, seed = job
+    policy, e = actor(ref, env_config)
+    return dict(tags, **rollout(policy, e, episode, seed))
+
+
+def init_worker():
+    torch.set_num_threads(1)   # one core per worker process
+
+
+def success_check(ckpt_path: str, episodes: int, seed: int = 0) -> float:
+    """Success rate of a checkpoint on the first `episodes` seen episodes, one process (for train.py)."""
+    policy = load_checkpoint(ckpt_path)
+    e = env.RearrangeEnv(**policy.env_config)
+    results = [rollout(policy, e, ep, reset_seed("seen", ep.index, seed))
+               for ep in env.make_episodes("seen", episodes, seed=EVAL_SEED)]
+    return float(np.mean([r["success"] for r in results]))
+
+
+# --- aggregation ---
+
+def summarize(rollouts):
+    """Metrics of one unit (one checkpoint, one rollout seed, one split, one condition), in %."""
+    def pct(num, den):
+        return 100.0 * num / den if den else None
+    out = {}
+    for key, _ in GROUPS:
+        chosen = [r for r in rollouts if key == "all" or r["difficulty"] == key]
+        out[f"success_{key}"] = pct(sum(r["success"] for r in chosen), len(chosen))
+    picked = [r for r in rollouts if r["picked"]]
+    out["picked"] = pct(len(picked), len(rollouts))
+    out["success_given_picked"] = pct(sum(r["success"] for r in picked), len(picked))
+    out["skill_accuracy"] = pct(sum(r["skill_correct"] for r in rollouts),
+                                sum(r["skill_predicted"] for r in rollouts))
+    out["perturbed"] = pct(sum(r["perturbed"] for r in rollouts), len(rollouts))
+    out["mean_length"] = float(np.mean([r["steps"] for r in rollouts]))
+    return out
+
+
+def spread(units, key):
+    """Mean and std of a metric: over training seeds when there are several, else over rollout seeds."""
+    if any(u[key] is None for u in units):
+        return None
+    members = sorted({u["member"] for u in units})
+    values = ([np.mean([u[key] for u in units if u["member"] == m]) for m in members] if len(members) > 1
+              else [u[key] for u in units])
+    return {"mean": float(np.mean(values)), "std": float(np.std(values))}
+
+
+def aggregate(method, rollouts):
+    """All rollouts of one method on one split and condition -> {metric: {mean, std}, failures, units}."""
+    units = []
+    for ref, _ in method["members"]:
+        for seed in sorted({r["seed"] for r in rollouts}):
+            mine = [r for r in rollouts if r["member"] == ref and r["seed"] == seed]
+            units.append(dict(member=ref, seed=seed, episodes=len(mine), **summarize(mine)))
+    metrics = {key: spread(units, key) for key in units[0] if key not in ("member", "seed", "episodes")}
+    failures = {}
+    for r in rollouts:
+        reason = r["failure"] or ("none" if r["success"] else "unknown")
+        failures[reason] = failures.get(reason, 0) + 1
+    return dict(metrics, failures=dict(sorted(failures.items())), units=units)
+
+
+# --- tables ---
+
+def fmt(stat):
+    return "-" if stat is None else f"{stat['mean']:.2f} ± {stat['std']:.2f}"
+
+
+def markdown(results):
+    cfg, splits = results["config"], results["splits"]
+    methods = results["methods"]
+    lines = []
+
+    def table(title, header, rows):
+        lines.extend([f"## {title}", "", "| " + " | ".join(header) + " |",
+                      "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in rows] + [""])
+
+    if not cfg["perturb"]:
+        prefix = (lambda s: s.capitalize() + " ") if len(splits) > 1 else (lambda s: "")
+        header = ["Method"] + [prefix(s) + label for s in splits for _, label in GROUPS]
+        rows = [[m["name"]] + [fmt(m["results"][s]["no_perturb"][f"success_{g}"]) for s in splits for g, _ in GROUPS]
+                for m in methods]
+        table(f"Table 1: success rate (%), {' and '.join(splits)}, {cfg['episodes']} episodes per split", header, rows)
+    else:
+        for s in splits:
+            header = ["Method", "Pick No Perturb", "Pick Perturb", "Skill Acc No Perturb", "Skill Acc Perturb"]
+            rows = [[m["name"]] + [fmt(m["results"][s][c][k]) for k in ("picked", "skill_accuracy") for c in CONDITIONS]
+                    for m in methods]
+            table(f"Table 2: picking the target and skill accuracy (%), {s}, {cfg['episodes']} episodes "
+                  f"with the target in a closed drawer", header, rows)
+    for s in splits:
+        header = ["Method", "Condition", "Picked", "Success given picked", "Skill accuracy", "Perturbed",
+                  "Mean length", "Failures (last step)"]
+        rows = [[m["name"], c] + [fmt(r[k]) for k in ("picked", "success_given_picked", "skill_accuracy", "perturbed")]
+                + [f"{r['mean_length']['mean']:.0f}", ", ".join(f"{k} {v}" for k, v in r["failures"].items())]
+                for m in methods for c, r in m["results"][s].items()]
+        table(f"Details: {s}", header, rows)
+    return "\n".join(lines)
+
+
+# --- video ---
+
+def write_png(path, image):
+    """Minimal PNG writer: (H, W) grayscale or (H, W, 3) RGB uint8, zlib only."""
+    image = np.ascontiguousarray(image, np.uint8)
+    h, w = image.shape[:2]
+    raw = b"".join(b"\x00" + image[y].tobytes() for y in range(h))   # filter type 0 per row
+
+    def chunk(tag, data):
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+    header = struct.pack(">IIBBBBB", w, h, 8, 0 if image.ndim == 2 else 2, 0, 0, 0)
+    with open(path, "wb") as f:
+        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw))
+                + chunk(b"IEND", b""))
+
+
+def rgb_renderer(e, size=240):
+    """A third-person RGB view that follows the robot, or None with the reason when OpenGL is missing."""
+    try:
+        renderer = mujoco.Renderer(e.model, size, size)
+    except Exception as err:  # no display and no EGL / OSMesa: mujoco raises several kinds
+        return None, f"{type(err).__name__}: {err}"
+    cam, option = mujoco.MjvCamera(), mujoco.MjvOption()
+    cam.distance, cam.elevation = 3.0, -60.0
+    option.geomgroup[:] = 1   # the robot's geoms are in a group the renderer hides by default
+
+    def render():
+        x, y, yaw = e.data.qpos[e.ids["base_q"]]
+        cam.lookat[:] = (x, y, 0.5)
+        cam.azimuth = np.degrees(yaw)   # from behind the robot, looking where it heads
+        renderer.update_scene(e.data, camera=cam, scene_option=option)
+        return renderer.render()
+    return render, None
+
+
+def write_videos(cfg, methods, split):
+    """A few rollouts per method as PNG frames: RGB where OpenGL works, else the head depth camera."""
+    for m in methods:
+        ref, env_config = m["members"][0]
+        policy, e = actor(ref, dict(env_config, perturb=cfg.perturb))
+        render, why = rgb_renderer(e)
+        if render is None:
+            print(f"video: RGB rendering unavailable ({why}); run with MUJOCO_GL=egl (or osmesa) "
+                  f"for it. Writing the head depth camera instead.", flush=True)
+        for ep in eval_episodes(split, cfg.video_episodes, cfg.perturb):
+            folder = os.path.join(cfg.video, f"{m['variant']}_{split}_{ep.index:04d}")
+            os.makedirs(folder, exist_ok=True)
+            frames = []
+            grab = (lambda obs: frames.append(render())) if render else \
+                (lambda obs: frames.append(env.depth_to_uint8(obs["depth"])))
+            r = rollout(policy, e, ep, reset_seed(split, ep.index, 0), on_step=grab)
+            for t, frame in enumerate(frames):
+                write_png(os.path.join(folder, f"{t:05d}.png"), frame)
+            print(f"video: {folder} ({len(frames)} frames, success {r['success']})", flush=True)
+
+
+# --- main ---
+
+def evaluate(cfg):
+    """Run all rollouts, aggregate, write --out and its .md -> the results dict."""
+    if cfg.split not in ("seen", "unseen", "both"):
+        raise ValueError(f"--split must be seen, unseen or both, got {cfg.split!r}")
+    if not cfg.policy:
+        raise ValueError("give at least one --policy (a checkpoint, expert:oracle or expert:fixed)")
+    splits = ["seen", "unseen"] if cfg.split == "both" else [cfg.split]
+    methods = [parse_method(spec, cfg) for spec in cfg.policy]
+    conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
+    episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb) for s in splits}
+    jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
+             ref, dict(env_config, perturb=c == "perturb"), ep, reset_seed(s, ep.index, seed))
+            for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
+            for s in splits for c in conditions for ep in episodes[s]]
+    print(f"evaluating {len(methods)} methods on {', '.join(splits)}: {len(jobs)} rollouts, "
+          f"{cfg.workers} workers", flush=True)
+    rollouts, t0, last_log = [], time.time(), time.time()
+    pool = mp.get_context("spawn").Pool(cfg.workers, initializer=init_worker) if cfg.workers > 1 else None
+    try:
+        for r in (pool.imap_unordered(rollout_job, jobs) if pool else map(rollout_job, jobs)):
+            rollouts.append(r)
+            now = time.time()
+            if now - last_log >= cfg.log_every or len(rollouts) == len(jobs):
+                last_log, minutes = now, (now - t0) / 60
+                print(f"[{len(rollouts):5d}/{len(jobs)}] {len(rollouts) / minutes:6.1f} ep/min, "
+                      f"eta {(len(jobs) - len(rollouts)) * minutes / len(rollouts):.1f} min", flush=True)
+    finally:
+        if pool:
+            pool.terminate() if len(rollouts) < len(jobs) else pool.close()
+            pool.join()
+    rollouts.sort(key=lambda r: (r["method"], r["member"], r["seed"], r["split"], r["condition"], r["index"]))
+    for i, m in enumerate(methods):
+        mine = [r for r in rollouts if r["method"] == i]
+        m["results"] = {s: {c: aggregate(m, [r for r in mine if (r["split"], r["condition"]) == (s, c)])
+                            for c in conditions} for s in splits}
+    results = {"config": dataclasses.asdict(cfg), "eval_seed": EVAL_SEED, "splits": splits,
+               "versions": {"python": platform.python_version(), "numpy": np.__version__,
+                            "mujoco": mujoco.__version__, "torch": torch.__version__},
+               "methods": methods, "rollouts": rollouts}
+    results["markdown"] = markdown(results)
+    os.makedirs(os.path.dirname(cfg.out) or ".", exist_ok=True)
+    with open(cfg.out, "w") as f:
+        json.dump(results, f, indent=1)
+    with open(os.path.splitext(cfg.out)[0] + ".md", "w") as f:
+        f.write(results["markdown"])
+    if cfg.video:
+        write_videos(cfg, methods, splits[0])
+    return results
+
+
+# --- command line ---
+
+def field_docs(cls):
+    """Field name -> the docstring written under it, for --help."""
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
+            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    docs = field_docs(Config)
+    for f in dataclasses.fields(Config):
+        flag = "--" + f.name.replace("_", "-")
+        if f.default_factory is list:
+            p.add_argument(flag, action="append", default=[], help=docs[f.name])
+        elif isinstance(f.default, bool):
+            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs[f.name])
+        else:
+            p.add_argument(flag, type=type(f.default), default=f.default, help=docs[f.name])
+    return Config(**vars(p.parse_args(argv)))
+
+
+if __name__ == "__main__":
+    cfg = parse_args()
+    try:
+        results = evaluate(cfg)
+    except (ValueError, FileNotFoundError) as err:
+        sys.exit(f"error: {err}")
+    print(results["markdown"])
+    print(f"wrote {cfg.out} and {os.path.splitext(cfg.out)[0]}.md")

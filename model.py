@@ -1,0 +1,416 @@
+"""Skill Transformer (Huang, Batra, Rai, Szot, ICCV 2023, Sec. 4) and its baselines, in one file.
+
+A shared observation encoder turns each step's depth image and proprioceptive state into a token
+x_t. The Skill Inference module, a causal transformer over x_{t-C+1..t}, predicts the active skill
+(and, for training only, which receptacle holds the target). The Action Inference module, a causal
+transformer over the interleaved tokens (x_t, a_{t-1}, z_t), predicts the whole-body action: arm
+and base means and a 3-way grip distribution. Training uses the true skills as z (teacher forcing,
+Sec. 4.2); a rollout feeds the predicted ones.
+
+Baselines (Sec. 5.2, Sec. 5.5, Appendix C.3), chosen by ModelConfig.variant:
+    st        Skill Transformer
+    no_skill  action inference over (x_t, a_{t-1}) alone: no skill module, no skill tokens
+    lstm      the Skill Transformer with both transformers replaced by LSTMs of similar size
+    dt        Decision Transformer (Chen et al. 2021) over (R_t, x_t, a_{t-1}), R = return-to-go
+    dt_skill  dt plus an auxiliary skill head trained with focal loss
+
+Nothing here runs on its own; it is imported:
+    python train.py --data data/demos --out ckpt/st.pt             # trains a model
+    python -c "import model; p = model.load_policy('ckpt/st.pt')"  # p.act(obs) -> action, skill
+"""
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+import env
+
+VARIANTS = ("st", "no_skill", "lstm", "dt", "dt_skill")
+ENCODERS = ("cnn", "resnet18")
+
+
+@dataclass
+class ModelConfig:
+    """Everything needed to rebuild the network; saved as "model_args" in every checkpoint."""
+    depth_size: int = 32
+    """side of the square depth image, in pixels (read from the data)"""
+    state_dim: int = env.STATE_DIM
+    """proprioceptive + task inputs per step (env.STATE_LAYOUT)"""
+    n_skills: int = len(env.SKILLS)
+    """skill classes: navigate, pick, place, open_drawer, open_fridge"""
+    n_receptacles: int = len(env.RECEPTACLES) + 1
+    """auxiliary receptacle classes: 0 = target not in a closed receptacle, i = i-th receptacle"""
+    context: int = 30
+    """context length C in steps (Sec. 4.1: C = 30); action inference sees 3C tokens"""
+    d_vis: int = 64
+    """visual embedding size (paper: 256)"""
+    d_state: int = 64
+    """state embedding size (paper: 256)"""
+    d_model: int = 128
+    """transformer width; a linear map takes the concatenated token to it if the sizes differ"""
+    n_layer: int = 2
+    """layers per transformer (Sec. 4.1: 2)"""
+    n_head: int = 4
+    """attention heads"""
+    dropout: float = 0.1
+    """dropout in the transformer blocks, as in the Decision Transformer"""
+    encoder: str = "cnn"
+    """depth encoder: cnn (small, strided) or resnet18 (the paper's, with GroupNorm)"""
+    variant: str = "st"
+    """st, no_skill, lstm, dt or dt_skill"""
+
+
+# --- observation encoders (Sec. 4.1 "Input") ---
+
+class SmallCNN(nn.Module):
+    """Strided 3x3 convolutions down to 4x4, then a linear layer: the fast default encoder."""
+
+    def __init__(self, size, out_dim):
+        super().__init__()
+        layers, ch = [], 1
+        for i in range(max(1, int(math.log2(size // 4)))):
+            nxt = min(64, 16 * 2 ** i)
+            layers += [nn.Conv2d(ch, nxt, 3, stride=2, padding=1), nn.ReLU()]
+            ch = nxt
+        self.convs = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(4), nn.Flatten())
+        self.fc = nn.Linear(ch * 16, out_dim)
+
+    def forward(self, x):  # (N, 1, H, W) -> (N, out_dim)
+        return F.relu(self.fc(self.convs(x)))
+
+
+class BasicBlock(nn.Module):
+    """ResNet basic block (He et al. 2016) with GroupNorm, as Habitat's depth encoders use."""
+
+    def __init__(self, cin, cout, stride):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.gn1 = nn.GroupNorm(cout // 16, cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self.gn2 = nn.GroupNorm(cout // 16, cout)
+        self.down = None
+        if stride != 1 or cin != cout:
+            self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.GroupNorm(cout // 16, cout))
+
+    def forward(self, x):
+        y = self.gn2(self.conv2(F.relu(self.gn1(self.conv1(x)))))
+        return F.relu(y + (x if self.down is None else self.down(x)))
+
+
+class ResNet18(nn.Module):
+    """ResNet-18 (Sec. 4.1: the paper's visual encoder) on one depth channel, ~11M parameters."""
+
+    def __init__(self, out_dim):
+        super().__init__()
+        self.stem = nn.Sequential(nn.Conv2d(1, 64, 7, 2, 3, bias=False), nn.GroupNorm(4, 64), nn.ReLU(),
+                                  nn.MaxPool2d(3, 2, 1))
+        blocks, cin = [], 64
+        for cout, stride in ((64, 1), (128, 2), (256, 2), (512, 2)):
+            blocks += [BasicBlock(cin, cout, stride), BasicBlock(cout, cout, 1)]
+            cin = cout
+        self.blocks = nn.Sequential(*blocks, nn.AdaptiveAvgPool2d(1), nn.Flatten())
+        self.fc = nn.Linear(512, out_dim)
+
+    def forward(self, x):  # (N, 1, H, W) -> (N, out_dim)
+        return F.relu(self.fc(self.blocks(self.stem(x))))
+
+
+# --- sequence backbones (nanoGPT blocks; an LSTM for the lstm baseline) ---
+
+class CausalSelfAttention(nn.Module):
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.n_head = cfg.n_head
+        self.qkv = nn.Linear(cfg.d_model, 3 * cfg.d_model)
+        self.proj = nn.Linear(cfg.d_model, cfg.d_model)
+        self.dropout = cfg.dropout
+        self.resid_drop = nn.Dropout(cfg.dropout)
+
+    def forward(self, x, last_only=False):
+        B, L, D = x.shape
+        q, k, v = self.qkv(x).split(D, dim=2)
+        if last_only:  # a rollout needs the last query alone; it may see every key
+            q = q[:, -1:]
+        q = q.view(B, q.shape[1], self.n_head, D // self.n_head).transpose(1, 2)  # (B, h, Lq, d)
+        k, v = (t.view(B, L, self.n_head, D // self.n_head).transpose(1, 2) for t in (k, v))  # (B, h, L, d)
+        y = F.scaled_dot_product_attention(q, k, v, is_causal=not last_only,
+                                           dropout_p=self.dropout if self.training else 0.0)
+        return self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, q.shape[2], D)))
+
+
+class Block(nn.Module):
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.ln1 = nn.LayerNorm(cfg.d_model)
+        self.attn = CausalSelfAttention(cfg)
+        self.ln2 = nn.LayerNorm(cfg.d_model)
+        self.mlp = nn.Sequential(nn.Linear(cfg.d_model, 4 * cfg.d_model), nn.ReLU(),
+                                 nn.Linear(4 * cfg.d_model, cfg.d_model), nn.Dropout(cfg.dropout))
+
+    def forward(self, x, last_only=False):
+        x = (x[:, -1:] if last_only else x) + self.attn(self.ln1(x), last_only)
+        return x + self.mlp(self.ln2(x))
+
+
+class Transformer(nn.Module):
+    """Causal transformer (Sec. 4.1): token i attends to tokens <= i only."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.drop = nn.Dropout(cfg.dropout)
+        self.blocks = nn.ModuleList(Block(cfg) for _ in range(cfg.n_layer))
+        self.ln_f = nn.LayerNorm(cfg.d_model)
+
+    def forward(self, x, last_only=False):  # (B, L, D) -> (B, L, D), or (B, 1, D) if last_only
+        x = self.drop(x)
+        for i, block in enumerate(self.blocks):
+            # In the last layer only the last position's output is needed for a rollout step.
+            x = block(x, last_only and i == len(self.blocks) - 1)
+        return self.ln_f(x)
+
+
+class LSTMBackbone(nn.Module):
+    """The lstm baseline (Sec. 5.5, Fig. 6): same tokens, an LSTM in place of the transformer."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.lstm = nn.LSTM(cfg.d_model, cfg.d_model, num_layers=cfg.n_layer, batch_first=True,
+                            dropout=cfg.dropout if cfg.n_layer > 1 else 0.0)
+        self.ln_f = nn.LayerNorm(cfg.d_model)
+
+    def forward(self, x, last_only=False):  # (B, L, D) -> (B, L, D), causal by construction
+        h = self.lstm(x)[0]
+        return self.ln_f(h[:, -1:] if last_only else h)
+
+
+# --- the policy network ---
+
+class SkillTransformer(nn.Module):
+    """Observation encoder + Skill Inference + Action Inference (Fig. 2), or a baseline."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        if cfg.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {cfg.variant!r}")
+        if cfg.encoder not in ENCODERS:
+            raise ValueError(f"encoder must be one of {ENCODERS}, got {cfg.encoder!r}")
+        if cfg.d_model % cfg.n_head:
+            raise ValueError(f"d_model ({cfg.d_model}) must be divisible by n_head ({cfg.n_head})")
+        self.cfg = cfg
+        v = cfg.variant
+        # Sec. 4.1: depth -> visual embedding, state -> MLP embedding, concatenated into x_t.
+        self.vis = SmallCNN(cfg.depth_size, cfg.d_vis) if cfg.encoder == "cnn" else ResNet18(cfg.d_vis)
+        self.state_mlp = nn.Sequential(nn.Linear(cfg.state_dim, cfg.d_state), nn.ReLU(),
+                                       nn.Linear(cfg.d_state, cfg.d_state), nn.ReLU())
+        d_tok = cfg.d_vis + cfg.d_state
+        self.tok_proj = nn.Identity() if d_tok == cfg.d_model else nn.Linear(d_tok, cfg.d_model)
+        self.pos_emb = nn.Parameter(torch.zeros(1, cfg.context, cfg.d_model))  # per-timestep, Sec. 4.1
+        # Normalisation of the inputs, set by train.py from the data and saved in the state dict.
+        self.register_buffer("state_mean", torch.zeros(cfg.state_dim))
+        self.register_buffer("state_std", torch.ones(cfg.state_dim))
+        self.register_buffer("rtg_scale", torch.ones(()))
+        Backbone = LSTMBackbone if v == "lstm" else Transformer
+        self.has_skill_module = v in ("st", "lstm")
+        if self.has_skill_module:
+            # Skill Inference (Sec. 4.1) with the auxiliary receptacle head (Sec. 4.2, Eq. 3).
+            self.skill_net = Backbone(cfg)
+            self.skill_head = nn.Linear(cfg.d_model, cfg.n_skills)
+            self.aux_head = nn.Linear(cfg.d_model, cfg.n_receptacles)
+            self.skill_emb = nn.Embedding(cfg.n_skills, cfg.d_model)  # c_t -> z_t
+        if v in ("dt", "dt_skill"):
+            self.rtg_emb = nn.Linear(1, cfg.d_model)
+        if v == "dt_skill":
+            self.skill_head = nn.Linear(cfg.d_model, cfg.n_skills)  # auxiliary skill loss (Appendix C.3)
+        # Action Inference (Sec. 4.1): 12 outputs = 7 arm means, 2 base means, 3 grip logits.
+        self.act_emb = nn.Linear(env.ACTION_DIM, cfg.d_model)
+        self.action_net = Backbone(cfg)
+        self.arm_head = nn.Linear(cfg.d_model, env.ARM.stop - env.ARM.start)
+        self.base_head = nn.Linear(cfg.d_model, env.BASE.stop - env.BASE.start)
+        self.grip_head = nn.Linear(cfg.d_model, len(env.GRIP_VALUES))
+        self.tokens_per_step = 2 if v == "no_skill" else 3
+        self.apply(self._init_weights)
+
+    @staticmethod
+    def _init_weights(m):
+        if isinstance(m, (nn.Linear, nn.Embedding)):
+            nn.init.normal_(m.weight, std=0.02)
+            if getattr(m, "bias", None) is not None:
+                nn.init.zeros_(m.bias)
+
+    def embed_obs(self, depth, state):
+        """Token x_t. depth (B, T, 1, H, W) float in [0, 1], state (B, T, S) -> (B, T, D)."""
+        B, T = state.shape[:2]
+        vis = self.vis(depth.reshape(B * T, *depth.shape[2:])).view(B, T, -1)
+        st = self.state_mlp((state - self.state_mean) / self.state_std)
+        return self.tok_proj(torch.cat([vis, st], dim=-1))
+
+    def infer_skill(self, x, mask, last_only=False):
+        """Skill Inference over x (B, T, D) -> skill logits (B, T, n_skills), aux logits (B, T, M+1)
+        (T = 1 with last_only: the current step alone, for a rollout).
+
+        Left padding (mask False) becomes a zero token, exactly as in a rollout's first C steps."""
+        h = self.skill_net(x * mask[..., None] + self.pos_emb[:, :x.shape[1]], last_only)
+        return self.skill_head(h), self.aux_head(h)
+
+    def infer_action(self, x, prev_action, mask, skill=None, rtg=None, last_only=False):
+        """Action Inference. x (B, T, D), prev_action a_{t-1} (B, T, 10), mask (B, T) bool,
+        skill z_t ids (B, T) for st/lstm, rtg (B, T) for dt -> dict of per-step outputs (B, T, .),
+        or of the current step alone (B, 1, .) with last_only."""
+        v, (B, T, D) = self.cfg.variant, x.shape
+        a = self.act_emb(prev_action)
+        if v in ("st", "lstm"):
+            toks = (x, a, self.skill_emb(skill))  # (x_t, a_{t-1}, z_t), Sec. 4.1
+        elif v == "no_skill":
+            toks = (x, a)
+        else:
+            toks = (self.rtg_emb((rtg / self.rtg_scale)[..., None]), x, a)  # (R_t, x_t, a_{t-1}), DT
+        pos = self.pos_emb[:, :T]
+        seq = torch.stack([t * mask[..., None] + pos for t in toks], dim=2)  # (B, T, k, D)
+        # The last token of step t has seen x_{<=t}, a_{<=t-1} (and z_{<=t}): it predicts a_t.
+        h = self.action_net(seq.view(B, T * len(toks), D), last_only)
+        h = h if last_only else h.view(B, T, len(toks), D)[:, :, -1]
+        out = {"arm": self.arm_head(h), "base": self.base_head(h), "grip_logits": self.grip_head(h)}
+        if v == "dt_skill":
+            out["skill_logits"] = self.skill_head(h)
+        return out
+
+    def forward(self, batch):
+        """Training pass with teacher forcing (Sec. 4.2): the true skills are the z_t tokens."""
+        x = self.embed_obs(batch["depth"], batch["state"])
+        out = {}
+        if self.has_skill_module:
+            out["skill_logits"], out["aux_logits"] = self.infer_skill(x, batch["mask"])
+        out.update(self.infer_action(x, batch["prev_action"], batch["mask"],
+                                     skill=batch.get("skill"), rtg=batch.get("rtg")))
+        return out
+
+    def compute_loss(self, out, batch):
+        """Sec. 4.2: focal loss (skills, grip) + MSE (arm, base) + CE (aux), unweighted sum, each
+        averaged over the valid (unpadded) steps of the window. Returns a dict with "loss"."""
+        m = batch["mask"].float()
+        mean = lambda l: (l * m).sum() / m.sum().clamp(min=1.0)
+        act = batch["action"]
+        grip_target = act[..., env.GRIP].round().long() + 1  # release/keep/grasp -> 0/1/2
+        losses = {"arm": mean(((out["arm"].float() - act[..., env.ARM]) ** 2).mean(-1)),
+                  "base": mean(((out["base"].float() - act[..., env.BASE]) ** 2).mean(-1)),
+                  "grip": mean(focal_loss(out["grip_logits"], grip_target))}
+        if "skill_logits" in out:
+            losses["skill"] = mean(focal_loss(out["skill_logits"], batch["skill"]))  # Eq. 1
+        if "aux_logits" in out:
+            aux = F.cross_entropy(out["aux_logits"].float().flatten(0, 1), batch["receptacle"].flatten(),
+                                  reduction="none").view_as(m)
+            losses["aux"] = mean(aux)  # Eq. 3
+        losses["loss"] = sum(losses.values())
+        return losses
+
+    def num_params(self):
+        return sum(p.numel() for p in self.parameters())
+
+
+def focal_loss(logits, target, gamma=2.0):
+    """Focal loss (Lin et al. 2017), per element: -(1 - p_y)^gamma log p_y. It counters the skill
+    imbalance (navigate dominates, Sec. 4.2). logits (..., K), target (...) -> (...)."""
+    logp = F.log_softmax(logits.float(), dim=-1).gather(-1, target[..., None]).squeeze(-1)
+    return -((1.0 - logp.exp()) ** gamma) * logp
+
+
+# --- rollout policy built from a checkpoint ---
+
+def load_checkpoint(path, device="cpu"):
+    """torch.load(weights_only=True) with clear errors for a missing file or a foreign format."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"checkpoint {path!r} does not exist")
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=True)
+    except Exception as e:
+        raise ValueError(f"{path}: not a readable torch checkpoint ({type(e).__name__}: {e})") from e
+    missing = [k for k in ("model", "model_args", "env_config", "rtg_max") if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing:
+        raise ValueError(f"{path}: not a Skill Transformer checkpoint (missing {missing}); "
+                         "expected the dict that train.py writes")
+    return ckpt
+
+
+def model_from_checkpoint(ckpt, device="cpu"):
+    """Rebuild the network from ckpt["model_args"] and load its weights."""
+    try:
+        cfg = ModelConfig(**ckpt["model_args"])
+    except TypeError as e:
+        raise ValueError(f"checkpoint model_args do not match ModelConfig: {e}") from e
+    m = SkillTransformer(cfg)
+    m.load_state_dict(ckpt["model"])
+    return m.to(device)
+
+
+class Policy:
+    """Acts in the env from raw observations, keeping the last C steps (Sec. 4.1, test time).
+
+    Per step only the new observation is encoded (past tokens x_t are cached in a rolling,
+    left-padded window); the transformers then run over the window, with the *predicted* skills
+    as z tokens, and only the current step's outputs are computed in the last layer."""
+
+    def __init__(self, model, env_config, rtg_max, device="cpu"):
+        self.model = model.eval()
+        self.cfg = model.cfg
+        self.variant = self.cfg.variant
+        self.env_config = dict(env_config)
+        self.rtg_max = float(rtg_max)
+        self.device = torch.device(device)
+        self.reset()
+
+    def reset(self):
+        C, dev = self.cfg.context, self.device
+        self.x = torch.zeros(1, C, self.cfg.d_model, device=dev)           # x_t
+        self.prev_action = torch.zeros(1, C, env.ACTION_DIM, device=dev)   # a_{t-1}
+        self.skill = torch.zeros(1, C, dtype=torch.long, device=dev)       # predicted z_t
+        self.rtg = torch.zeros(1, C, device=dev)                           # R_t (dt variants)
+        self.mask = torch.zeros(1, C, dtype=torch.bool, device=dev)        # False = padding
+        self.last_action = torch.zeros(env.ACTION_DIM, device=dev)
+        self.return_to_go = self.rtg_max  # Appendix C.3: condition on the max return of the demos
+        self.t = 0
+
+    @torch.inference_mode()
+    def act(self, obs, reward=0.0):
+        """obs: the env's observation dict; reward: the reward of the previous step (dt only).
+        Returns (action float32 (10,), predicted skill id, -1 where the variant predicts none)."""
+        depth = env.depth_to_uint8(obs["depth"])  # quantised exactly as the demos are stored
+        S = self.cfg.depth_size
+        if depth.shape != (S, S):
+            raise ValueError(f"depth image is {depth.shape}, the model was trained on ({S}, {S})")
+        if self.t > 0:
+            self.return_to_go -= float(reward)
+        d = torch.from_numpy(depth).to(self.device, torch.float32).div_(255.0).view(1, 1, 1, S, S)
+        s = torch.from_numpy(env.state_vector(obs)).to(self.device).view(1, 1, -1)
+        for name in ("x", "prev_action", "skill", "rtg", "mask"):  # slide the window by one step
+            setattr(self, name, torch.roll(getattr(self, name), -1, dims=1))
+        self.x[0, -1] = self.model.embed_obs(d, s)[0, 0]
+        self.prev_action[0, -1] = self.last_action
+        self.rtg[0, -1] = self.return_to_go
+        self.mask[0, -1] = True
+        skill_id = -1
+        if self.model.has_skill_module:
+            skill_logits, _ = self.model.infer_skill(self.x, self.mask, last_only=True)
+            skill_id = int(skill_logits[0, -1].argmax())
+            self.skill[0, -1] = skill_id
+        out = self.model.infer_action(self.x, self.prev_action, self.mask, skill=self.skill, rtg=self.rtg,
+                                      last_only=True)
+        if "skill_logits" in out:
+            skill_id = int(out["skill_logits"][0, -1].argmax())
+        grip = env.GRIP_VALUES[int(out["grip_logits"][0, -1].argmax())]
+        action = torch.cat([out["arm"][0, -1], out["base"][0, -1], out["arm"].new_tensor([grip])]).clamp(-1, 1)
+        self.last_action = action
+        self.t += 1
+        return action.cpu().numpy().astype(np.float32), skill_id
+
+
+def load_policy(path, device="cpu"):
+    """Checkpoint written by train.py -> Policy with reset() and act(obs, reward)."""
+    ckpt = load_checkpoint(path, device)
+    return Policy(model_from_checkpoint(ckpt, device), ckpt["env_config"], ckpt["rtg_max"], device)

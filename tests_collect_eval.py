@@ -1,0 +1,216 @@
+"""Tests of collect.py and evaluate.py on the real simulator and expert, with tiny sizes.
+
+    python -m pytest tests_collect_eval.py -q
+"""
+import itertools
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import collect
+import env
+import evaluate
+import expert
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEPTH = 16   # smallest sensible camera: the tests check the plumbing, not the pictures
+
+
+def run(script, *args, check=True):
+    """Run a stage as a subprocess (as a user would) -> CompletedProcess with text output."""
+    p = subprocess.run([sys.executable, os.path.join(HERE, script), *map(str, args)],
+                       capture_output=True, text=True, timeout=600, cwd=HERE)
+    if check and p.returncode != 0:
+        raise AssertionError(f"{script} {args} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
+    return p
+
+
+def collect_run(out, episodes, *extra, check=True):
+    return run("collect.py", "--episodes", episodes, "--out", out, "--depth-size", DEPTH, "--seed", 0,
+               "--log-every", 0, *extra, check=check)
+
+
+def read_dir(out):
+    """{file name: {key: array}} of every episode file in a dataset directory."""
+    return {n: collect.load_episode(os.path.join(out, n)) for n in sorted(os.listdir(out)) if n.endswith(".npz")}
+
+
+def assert_same(a, b):
+    assert sorted(a) == sorted(b)
+    for name in a:
+        assert sorted(a[name]) == sorted(b[name]), name
+        for key in a[name]:
+            assert a[name][key].dtype == b[name][key].dtype and np.array_equal(a[name][key], b[name][key]), (name, key)
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    """Two successful demonstrations written by one worker; the reference for the other tests."""
+    out = tmp_path_factory.mktemp("demos") / "a"
+    collect_run(out, 2, "--workers", 1)
+    return out
+
+
+# --- collect.py ---
+
+def test_collect_round_trip(demos):
+    names = sorted(n for n in os.listdir(demos) if n.endswith(".npz"))
+    assert len(names) == 2 and all(re.fullmatch(r"ep_\d{6}\.npz", n) for n in names)
+    assert not [n for n in os.listdir(demos) if n.endswith(".tmp")]
+    for name in names:
+        with np.load(demos / name, allow_pickle=False) as f:
+            d = {k: f[k] for k in f.files}
+        T = len(d["action"])
+        assert T > 10
+        shapes = {"depth": ((T, DEPTH, DEPTH), np.uint8), "state": ((T, env.STATE_DIM), np.float32),
+                  "action": ((T, env.ACTION_DIM), np.float32), "skill": ((T,), np.int8),
+                  "receptacle": ((T,), np.int8), "reward": ((T,), np.float32),
+                  "success": ((), np.bool_), "layout": ((), np.int64), "seed": ((), np.int64),
+                  "index": ((), np.int64)}
+        for key, (shape, dtype) in shapes.items():
+            assert d[key].shape == shape and d[key].dtype == dtype, (key, d[key].shape, d[key].dtype)
+        assert d["difficulty"].shape == () and str(d["difficulty"]) in env.DIFFICULTIES
+        assert bool(d["success"])                                  # default: successful demos only
+        assert int(d["index"]) == int(name[3:9])
+        ep = env.make_episodes("train", int(d["index"]) + 1, seed=0)[int(d["index"])]
+        assert int(d["layout"]) == ep.layout and str(d["difficulty"]) == ep.difficulty
+        assert int(d["seed"]) == collect.reset_seed(0, int(d["index"]))
+        assert set(np.unique(d["skill"])) <= set(range(len(env.SKILLS))) and len(np.unique(d["skill"])) >= 3
+        assert np.all(np.abs(d["action"][:, :9]) <= 1.0 + 1e-6)
+        assert set(np.unique(d["action"][:, 9])) <= set(env.GRIP_VALUES)
+        collect.load_episode(demos / name)
+    meta = json.loads((demos / "meta.json").read_text())
+    assert meta["env_config"]["depth_size"] == DEPTH and meta["seed"] == 0 and meta["noise"] == 0.0
+    assert meta["skills"] == list(env.SKILLS) and meta["state_layout"][0] == ["joint", 7]
+    assert {"python", "numpy", "mujoco"} <= set(meta["versions"])
+    stats = run("collect.py", "--stats", demos).stdout
+    assert "2 episodes" in stats and "success 100.0%" in stats and "navigate" in stats
+
+
+def test_collect_same_with_two_workers(demos, tmp_path):
+    collect_run(tmp_path / "b", 2, "--workers", 2)
+    assert_same(read_dir(demos), read_dir(tmp_path / "b"))
+
+
+def test_collect_resume(demos, tmp_path):
+    out = tmp_path / "c"
+    collect_run(out, 1, "--workers", 1)                            # "killed" after one episode
+    collect_run(out, 2, "--workers", 2)                            # resumed with the full count
+    assert_same(read_dir(demos), read_dir(out))
+    last = sorted(n for n in os.listdir(out) if n.endswith(".npz"))[-1]
+    os.remove(out / last)                                          # killed while writing that one:
+    (out / (last + ".tmp")).write_bytes(b"half a zip")             # only its temporary file is there
+    collect_run(out, 2, "--workers", 1)
+    assert_same(read_dir(demos), read_dir(out))
+    assert sorted(os.listdir(out)) == sorted(os.listdir(demos))    # no temporary file left
+
+
+def test_collect_refuses_corrupt_foreign_and_mismatched(demos, tmp_path):
+    out = tmp_path / "d"
+    shutil.copytree(demos, out)
+    (out / "ep_000077.npz").write_bytes(b"not a zip file")
+    p = collect_run(out, 2, check=False)
+    assert p.returncode != 0 and "ep_000077.npz" in p.stderr and "not a readable" in p.stderr
+    os.remove(out / "ep_000077.npz")
+    np.savez(out / "ep_000078.npz", x=np.zeros(3))                 # a valid zip of the wrong content
+    p = collect_run(out, 2, check=False)
+    assert p.returncode != 0 and "ep_000078.npz" in p.stderr and "missing keys" in p.stderr
+    os.remove(out / "ep_000078.npz")
+    np.savez(out / "notes.npz", x=np.zeros(3))
+    p = collect_run(out, 2, check=False)
+    assert p.returncode != 0 and "notes.npz" in p.stderr and "foreign" in p.stderr
+    os.remove(out / "notes.npz")
+    p = collect_run(out, 2, "--seed", 1, check=False)
+    assert p.returncode != 0 and "meta.json" in p.stderr and "seed" in p.stderr
+    p = run("collect.py", "--episodes", 2, "--out", out, "--depth-size", 24, check=False)
+    assert p.returncode != 0 and "env_config" in p.stderr
+    with pytest.raises(ValueError, match="ep_000000.npz"):
+        bad = dict(collect.load_episode(out / "ep_000000.npz"), reward=np.full(3, np.nan, np.float32))
+        np.savez(tmp_path / "ep_000000.npz", **bad)
+        collect.load_episode(tmp_path / "ep_000000.npz")
+
+
+# --- evaluate.py ---
+
+def parse_markdown_table(md, title_start):
+    """The table under the heading that starts with title_start -> (header, rows)."""
+    lines = md[md.index("## " + title_start):].splitlines()[2:]
+    table = list(itertools.takewhile(lambda line: line.startswith("|"), lines))
+    rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in table]
+    return rows[0], rows[2:]
+
+
+def test_evaluate_table1_experts(tmp_path):
+    out = tmp_path / "eval.json"
+    p = run("evaluate.py", "--policy", "expert:oracle", "--policy", "expert:fixed", "--split", "both",
+            "--episodes", 4, "--workers", 2, "--depth-size", DEPTH, "--out", out, "--log-every", 0)
+    assert "Table 1" in p.stdout and "eta" in p.stdout
+    md = (tmp_path / "eval.md").read_text()
+    res = json.loads(out.read_text())
+    header, rows = parse_markdown_table(md, "Table 1")
+    assert header == ["Method"] + [f"{s} {g}" for s in ("Seen", "Unseen") for g in ("All", "Easy", "Hard", "Very Hard")]
+    assert [r[0] for r in rows] == ["expert:oracle", "expert:fixed"]
+    for m, row in zip(res["methods"], rows):                         # the table shows the JSON numbers
+        want = [evaluate.fmt(m["results"][s]["no_perturb"][f"success_{g}"])
+                for s in ("seen", "unseen") for g in ("all", "easy", "hard", "very_hard")]
+        assert row[1:] == want
+    assert len(res["rollouts"]) == 2 * 2 * 4
+    oracle, fixed = (m["results"]["unseen"]["no_perturb"] for m in res["methods"])
+    assert oracle["success_all"]["mean"] >= fixed["success_all"]["mean"]
+    assert fixed["success_hard"]["mean"] == 0.0 == fixed["success_very_hard"]["mean"]
+    assert sum(oracle["failures"].values()) == 4 and "Details: unseen" in md
+
+
+def test_evaluate_table2_perturb(tmp_path):
+    out = tmp_path / "p.json"
+    run("evaluate.py", "--policy", "expert:oracle", "--policy", "expert:fixed", "--perturb", "--episodes", 1,
+        "--workers", 2, "--depth-size", DEPTH, "--out", out)
+    md = (tmp_path / "p.md").read_text()
+    header, rows = parse_markdown_table(md, "Table 2")
+    assert header == ["Method", "Pick No Perturb", "Pick Perturb", "Skill Acc No Perturb", "Skill Acc Perturb"]
+    res = json.loads(out.read_text())
+    assert [r[0] for r in rows] == ["expert:oracle", "expert:fixed"]
+    for m, row in zip(res["methods"], rows):
+        r = m["results"]["unseen"]
+        assert row[1:] == [evaluate.fmt(r[c][k]) for k in ("picked", "skill_accuracy") for c in evaluate.CONDITIONS]
+    episodes = env.make_episodes("unseen", max(r["index"] for r in res["rollouts"]) + 1)
+    assert all(evaluate.target_in_drawer(episodes[r["index"]]) for r in res["rollouts"])
+    fixed = res["methods"][1]["results"]["unseen"]["no_perturb"]
+    assert fixed["picked"]["mean"] == 0.0                              # it never opens the drawer
+
+
+def test_fixed_plan_fails_where_oracle_succeeds():
+    e = env.RearrangeEnv(depth_size=DEPTH)
+    hard = [ep for ep in env.make_episodes("unseen", 8) if ep.kind == "object_closed"][:2]
+    results = {plan: [evaluate.rollout(expert.Expert(e, plan=plan), e, ep, evaluate.reset_seed("unseen", ep.index, 0))
+                      for ep in hard] for plan in ("oracle", "fixed")}
+    assert any(r["success"] for r in results["oracle"])
+    assert not any(r["success"] or r["picked"] for r in results["fixed"])
+    assert sum(r["success"] for r in results["fixed"]) < sum(r["success"] for r in results["oracle"])
+
+
+def test_evaluate_checkpoint_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothere.pt"):
+        evaluate.load_checkpoint(str(tmp_path / "nothere.pt"))
+    bad = tmp_path / "foreign.pt"
+    bad.write_bytes(b"certainly not a checkpoint")
+    with pytest.raises(ValueError, match="foreign.pt"):
+        evaluate.load_checkpoint(str(bad))
+    p = run("evaluate.py", "--policy", bad, "--episodes", 1, "--workers", 1, "--out", tmp_path / "x.json", check=False)
+    assert p.returncode != 0 and "foreign.pt" in p.stderr and "Traceback" not in p.stderr
+    p = run("evaluate.py", "--policy", tmp_path / "gone.pt", "--episodes", 1, check=False)
+    assert p.returncode != 0 and "gone.pt" in p.stderr and "not found" in p.stderr
+
+
+def test_spread_over_training_or_rollout_seeds():
+    units = [{"member": "a", "seed": 0, "x": 10.0}, {"member": "a", "seed": 1, "x": 30.0}]
+    assert evaluate.spread(units, "x") == {"mean": 20.0, "std": 10.0}             # rollout seeds
+    units += [{"member": "b", "seed": 0, "x": 40.0}, {"member": "b", "seed": 1, "x": 40.0}]
+    assert evaluate.spread(units, "x") == {"mean": 30.0, "std": 10.0}             # training seeds
+    assert evaluate.spread(units + [{"member": "c", "seed": 0, "x": None}], "x") is None

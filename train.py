@@ -1,0 +1,467 @@
+"""Imitation learning of the Skill Transformer (and baselines) from expert demonstrations.
+
+Follows Sec. 4.2 and Appendix A of the paper: random windows of C = 30 steps from the demos, all
+losses summed over every step of the window (teacher forcing with the true skills), AdamW, an
+"epoch" of 80 randomly chosen demonstrations, a linear learning-rate warm-up from 1e-8 followed
+by a cosine decay to 0, and the checkpoint with the best success on `seen` episodes kept.
+
+    python train.py --data data/demos --out ckpt/st.pt                    # Skill Transformer
+    python train.py --data data/demos --out ckpt/dt.pt --variant dt       # or no_skill, lstm, dt_skill
+    python train.py --data data/demos --out ckpt/st.pt --eval-every 10    # keep the best seen success
+    python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
+    torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
+
+Writes CKPT (best, or final when no success check runs), CKPT.last.pt (for --resume; CKPT minus
+its .pt) and CKPT.csv (the log). Load a checkpoint for rollouts with model.load_policy(CKPT).
+"""
+import argparse
+import contextlib
+import csv
+import datetime
+import glob
+import inspect
+import json
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel as DDP
+
+import env
+import model
+
+
+@dataclass
+class TrainConfig:
+    """Training run; every field is a command-line flag (--warmup-epochs 5 or --warmup_epochs=5)."""
+    data: str = "data/demos"
+    """directory of ep_XXXXXX.npz demos and meta.json, written by collect.py"""
+    out: str = "ckpt/st.pt"
+    """checkpoint to write; CKPT.last.pt and CKPT.csv go beside it"""
+    variant: str = "st"
+    """st (Skill Transformer), no_skill, lstm, dt or dt_skill"""
+    context: int = 30
+    """context length C in steps (Sec. 4.1)"""
+    d_model: int = 128
+    """transformer width; the visual and state embeddings get half each (paper: 512)"""
+    n_layer: int = 2
+    """layers per transformer (Sec. 4.1)"""
+    n_head: int = 4
+    """attention heads"""
+    dropout: float = 0.1
+    """dropout in the transformers"""
+    encoder: str = "cnn"
+    """depth encoder: cnn (fast) or resnet18 (the paper's; slow on a CPU)"""
+    epochs: int = 50
+    """epochs of demos_per_epoch demos each; 50 x 80 = 4 passes over 1,000 demos (paper: ~6)"""
+    warmup_epochs: int = 5
+    """linear warm-up from lr_start to lr (Appendix A: 200 of 750)"""
+    demos_per_epoch: int = 80
+    """demonstrations drawn at random for each epoch (Appendix A: 80)"""
+    coverage: float = 1.0
+    """windows per epoch = coverage x (steps in the epoch's demos) / context: 1 = each step once"""
+    batch_size: int = 64
+    """windows per optimizer step (summed over DDP ranks)"""
+    lr: float = 5e-4
+    """peak learning rate; the paper's 6e-5 is for ~50x more updates than this CPU budget allows"""
+    lr_start: float = 1e-8
+    """learning rate at the start of the warm-up (Appendix A)"""
+    weight_decay: float = 0.1
+    """AdamW weight decay on weight matrices (not on biases, norms, embeddings of position)"""
+    grad_clip: float = 1.0
+    """clip the gradient norm to this (0: off)"""
+    seed: int = 0
+    """seed of random, numpy and torch; the same seed draws the same windows"""
+    max_demos: int = 0
+    """use only the first N demos in file order (0: all)"""
+    resume: bool = False
+    """continue from CKPT.last.pt (same model, same data env config)"""
+    init: str = ""
+    """start from this checkpoint's weights with a fresh schedule (Appendix A: fine-tuning)"""
+    eval_every: int = 0
+    """every K epochs measure success on seen episodes with evaluate.success_check (0: off)"""
+    eval_episodes: int = 20
+    """episodes per success check"""
+    log_interval: int = 10
+    """iterations between log lines and CSV rows"""
+    device: str = "auto"
+    """auto (cuda if available), cpu or cuda"""
+    threads: int = 0
+    """torch CPU threads per process (0: all cores divided among the DDP ranks)"""
+
+
+LOSS_TERMS = ("loss", "skill", "aux", "arm", "base", "grip")
+CSV_FIELDS = ("epoch", "iter", "lr") + LOSS_TERMS + ("ms_iter", "samples_s", "success")
+
+
+# --- learning-rate schedule (Appendix A) ---
+
+def get_lr(epoch, cfg):
+    """Learning rate at a (fractional) epoch: linear from lr_start to lr over warmup_epochs, then
+    cosine decay to 0 at cfg.epochs. The paper steps it once per epoch; we step it per iteration
+    (epoch + it / iters) because our runs have ~15x fewer epochs."""
+    if epoch < cfg.warmup_epochs:
+        return cfg.lr_start + (cfg.lr - cfg.lr_start) * epoch / cfg.warmup_epochs
+    progress = min(1.0, (epoch - cfg.warmup_epochs) / max(cfg.epochs - cfg.warmup_epochs, 1e-9))
+    return 0.5 * cfg.lr * (1.0 + math.cos(math.pi * progress))
+
+
+# --- data ---
+
+EPISODE_ARRAYS = {  # name: (dtype kind or exact dtype, per-step shape)
+    "depth": (np.uint8, None), "state": (np.float32, (env.STATE_DIM,)), "action": (np.float32, (env.ACTION_DIM,)),
+    "skill": ("int", ()), "receptacle": ("int", ()), "reward": (np.float32, ()),
+}
+
+
+def load_meta(data_dir):
+    """meta.json of a demo directory, checked against env's vocabulary."""
+    path = os.path.join(data_dir, "meta.json")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path} not found: is {data_dir!r} a directory written by collect.py?")
+    try:
+        with open(path) as f:
+            meta = json.load(f)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from e
+    if not isinstance(meta.get("env_config"), dict) or "depth_size" not in meta["env_config"]:
+        raise ValueError(f"{path}: expected an 'env_config' dict with 'depth_size', got {meta.get('env_config')!r}")
+    expect = {"skills": list(env.SKILLS), "receptacles": list(env.RECEPTACLES),
+              "state_layout": [list(x) for x in env.STATE_LAYOUT]}
+    for key, want in expect.items():
+        got = [list(x) if isinstance(x, (list, tuple)) else x for x in meta.get(key, [])]
+        if got != want:
+            raise ValueError(f"{path}: {key} is {meta.get(key)!r}, this code expects {want!r}")
+    return meta
+
+
+def load_episode(path, size):
+    """One demo .npz -> dict of checked arrays, plus prev_action (a_{t-1}) and rtg (return-to-go)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            ep = {k: z[k] for k in EPISODE_ARRAYS}
+    except KeyError as e:
+        raise ValueError(f"{path}: missing array {e}; expected {sorted(EPISODE_ARRAYS)}") from e
+    except Exception as e:
+        raise ValueError(f"{path}: cannot read as .npz ({type(e).__name__}: {e})") from e
+    T = len(ep["action"])
+    if T < 1:
+        raise ValueError(f"{path}: empty episode")
+    for k, (dtype, shape) in EPISODE_ARRAYS.items():
+        a = ep[k]
+        want_shape = (T, size, size) if k == "depth" else (T, *shape)
+        if a.shape != want_shape:
+            raise ValueError(f"{path}: {k} has shape {a.shape}, expected {want_shape}")
+        ok = np.issubdtype(a.dtype, np.integer) if dtype == "int" else a.dtype == dtype
+        if not ok:
+            raise ValueError(f"{path}: {k} has dtype {a.dtype}, expected {dtype}")
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise ValueError(f"{path}: {k} has non-finite values")
+    for k, n in (("skill", len(env.SKILLS)), ("receptacle", len(env.RECEPTACLES) + 1)):
+        if ep[k].min() < 0 or ep[k].max() >= n:
+            raise ValueError(f"{path}: {k} ids must lie in [0, {n}), got [{ep[k].min()}, {ep[k].max()}]")
+    if not np.isin(ep["action"][:, env.GRIP], env.GRIP_VALUES).all():
+        raise ValueError(f"{path}: action[:, {env.GRIP}] (grip) must be one of {env.GRIP_VALUES}")
+    ep["skill"], ep["receptacle"] = ep["skill"].astype(np.int64), ep["receptacle"].astype(np.int64)
+    ep["prev_action"] = np.concatenate([np.zeros((1, env.ACTION_DIM), np.float32), ep["action"][:-1]])
+    ep["rtg"] = np.cumsum(ep["reward"][::-1])[::-1].astype(np.float32)  # R_t = sum of rewards from t on
+    return ep
+
+
+def load_demos(data_dir, max_demos=0):
+    """All demos in memory (depth stays uint8) -> (list of episode dicts, meta)."""
+    meta = load_meta(data_dir)
+    files = sorted(glob.glob(os.path.join(data_dir, "ep_*.npz")))
+    if max_demos:
+        files = files[:max_demos]
+    if not files:
+        raise ValueError(f"no ep_*.npz files in {data_dir!r}")
+    size = int(meta["env_config"]["depth_size"])
+    return [load_episode(f, size) for f in files], meta
+
+
+def epoch_windows(demos, cfg, epoch):
+    """Appendix A: an epoch draws demos_per_epoch demos; windows end at steps drawn uniformly from
+    all their steps, a whole number of batches of them. Same (seed, epoch) -> same windows on every
+    rank, which then takes its share of each batch. -> (n, 2) int array of (demo, end step)."""
+    rng = np.random.default_rng([cfg.seed, epoch])
+    chosen = rng.choice(len(demos), size=min(cfg.demos_per_epoch, len(demos)), replace=False)
+    ends = np.concatenate([np.stack([np.full(len(demos[i]["action"]), i), np.arange(len(demos[i]["action"]))], 1)
+                           for i in chosen])
+    B = cfg.batch_size
+    n = max(B, int(round(cfg.coverage * len(ends) / cfg.context)) // B * B)
+    return ends[rng.choice(len(ends), size=n, replace=n > len(ends))]
+
+
+def get_batch(demos, windows, C, device):
+    """Windows (B, 2) -> batch of (B, C, ...) tensors. A window that would start before step 0 is
+    left-padded; mask marks the real steps, and padding is left out of every loss."""
+    B, S = len(windows), demos[0]["depth"].shape[1]
+    keys = ("depth", "state", "action", "prev_action", "skill", "receptacle", "rtg")
+    arr = {k: np.zeros((B, C, *demos[0][k].shape[1:]), demos[0][k].dtype) for k in keys}
+    mask = np.zeros((B, C), bool)
+    for b, (i, e) in enumerate(windows):
+        s = max(0, e - C + 1)
+        for k in keys:
+            arr[k][b, C - (e + 1 - s):] = demos[i][k][s:e + 1]
+        mask[b, C - (e + 1 - s):] = True
+    batch = {k: torch.from_numpy(v).to(device, non_blocking=True) for k, v in arr.items()}
+    batch["depth"] = batch["depth"].float().div_(255.0).view(B, C, 1, S, S)  # (B, T, 1, H, W) in [0, 1]
+    batch["mask"] = torch.from_numpy(mask).to(device)
+    return batch
+
+
+def data_stats(demos):
+    """State normalisation and return scales, stored in the model / checkpoint."""
+    state = np.concatenate([d["state"] for d in demos])
+    rtg_abs = max(float(np.abs(d["rtg"]).max()) for d in demos)
+    return {"state_mean": state.mean(0), "state_std": np.maximum(state.std(0), 0.05),
+            "rtg_scale": rtg_abs if rtg_abs > 0 else 1.0,
+            "rtg_max": max(float(d["rtg"][0]) for d in demos)}  # Appendix C.3: max return of the demos
+
+
+# --- checkpoints ---
+
+def stem(path):
+    return path[:-3] if path.endswith(".pt") else path
+
+
+def save_atomic(obj, path):
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp{os.getpid()}"
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def check_model_args(ckpt, margs, ckpt_path):
+    """Resuming or fine-tuning needs the same network as the checkpoint's."""
+    want = asdict(margs)
+    if ckpt["model_args"] != want:
+        diff = {k: (ckpt["model_args"].get(k), want.get(k)) for k in set(want) | set(ckpt["model_args"])
+                if ckpt["model_args"].get(k) != want.get(k)}
+        raise ValueError(f"{ckpt_path}: model settings differ from the command line's (checkpoint, now): {diff}")
+
+
+def check_env_config(ckpt, meta, ckpt_path, data_dir):
+    """A model trained on one env config must not be trained or compared on data from another."""
+    a, b = ckpt["env_config"], meta["env_config"]
+    if a != b:
+        diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        raise ValueError(f"{ckpt_path} was trained with env_config different from {data_dir}/meta.json in "
+                         f"{diff}: " + ", ".join(f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in diff))
+
+
+def success_check_fn():
+    """evaluate.success_check(ckpt_path, episodes, seed) -> success rate, if evaluate.py provides it."""
+    try:
+        import evaluate
+    except ImportError as e:
+        print(f"no success check: evaluate.py does not import ({e})")
+        return None
+    fn = getattr(evaluate, "success_check", None)
+    if fn is None:
+        print("no success check: evaluate.py has no success_check()")
+    return fn
+
+
+# --- training ---
+
+def train(cfg):
+    """Runs the whole training; returns the path of the main checkpoint (rank 0)."""
+    ddp = int(os.environ.get("RANK", -1)) != -1
+    if cfg.device == "auto":
+        cfg.device = "cuda" if torch.cuda.is_available() else "cpu"
+    if ddp:
+        backend = "nccl" if cfg.device == "cuda" else "gloo"
+        dist.init_process_group(backend, timeout=datetime.timedelta(hours=2))
+        rank, local_rank, world = dist.get_rank(), int(os.environ["LOCAL_RANK"]), dist.get_world_size()
+    else:
+        rank, local_rank, world = 0, 0, 1
+    device = torch.device(f"cuda:{local_rank}" if cfg.device == "cuda" else "cpu")
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+        torch.backends.cuda.matmul.allow_tf32 = True
+    else:
+        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", 1))
+        torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // local_world))
+    if cfg.batch_size % world:
+        raise ValueError(f"batch_size ({cfg.batch_size}) must be a multiple of the DDP world size ({world})")
+    B = cfg.batch_size // world  # windows per rank and step
+    master = rank == 0
+    log = print if master else (lambda *a, **k: None)
+    random.seed(cfg.seed + rank)
+    np.random.seed(cfg.seed + rank)
+    torch.manual_seed(cfg.seed + rank)  # dropout differs per rank; DDP broadcasts rank 0's init
+    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
+                else contextlib.nullcontext())
+
+    # data
+    t0 = time.time()
+    demos, meta = load_demos(cfg.data, cfg.max_demos)
+    n_steps = sum(len(d["action"]) for d in demos)
+    log(f"loaded {len(demos)} demos, {n_steps} steps, depth {demos[0]['depth'].shape[1]}px "
+        f"from {cfg.data} in {time.time() - t0:.1f} s")
+
+    # model
+    margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]), context=cfg.context,
+                              d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
+                              d_model=cfg.d_model, n_layer=cfg.n_layer, n_head=cfg.n_head,
+                              dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant)
+    last_path, csv_path = stem(cfg.out) + ".last.pt", stem(cfg.out) + ".csv"
+    ckpt, start_epoch, iter_num, best_success = None, 0, 0, -1.0
+    if cfg.resume:
+        ckpt = model.load_checkpoint(last_path)
+        check_env_config(ckpt, meta, last_path, cfg.data)
+        check_model_args(ckpt, margs, last_path)
+        start_epoch, iter_num, best_success = ckpt["epoch"], ckpt["iter_num"], ckpt["best_success"]
+        log(f"resuming {last_path} at epoch {start_epoch}")
+    net = model.SkillTransformer(margs)
+    stats = data_stats(demos)
+    for k in ("state_mean", "state_std", "rtg_scale"):
+        getattr(net, k).copy_(torch.as_tensor(stats[k]))
+    if ckpt is not None:
+        net.load_state_dict(ckpt["model"])
+    elif cfg.init:
+        init = model.load_checkpoint(cfg.init)
+        check_env_config(init, meta, cfg.init, cfg.data)
+        check_model_args(init, margs, cfg.init)
+        net.load_state_dict(init["model"])
+        log(f"initialised from {cfg.init}")
+    net.to(device)
+    log(f"{cfg.variant}: {net.num_params() / 1e6:.2f}M parameters, device {device}, world {world}, "
+        f"{torch.get_num_threads()} threads")
+
+    # AdamW with weight decay on weight matrices only (nanoGPT)
+    params = [p for p in net.parameters() if p.requires_grad]
+    groups = [{"params": [p for p in params if p.dim() >= 2 and p is not net.pos_emb],
+               "weight_decay": cfg.weight_decay},
+              {"params": [p for p in params if p.dim() < 2 or p is net.pos_emb], "weight_decay": 0.0}]
+    opt = torch.optim.AdamW(groups, lr=cfg.lr_start, betas=(0.9, 0.95))
+    if ckpt is not None:
+        opt.load_state_dict(ckpt["optimizer"])
+    raw = net
+    if ddp:
+        net = DDP(net, device_ids=[local_rank] if device.type == "cuda" else None)
+
+    def checkpoint(epoch):
+        return {"model": raw.state_dict(), "optimizer": opt.state_dict(), "model_args": asdict(margs),
+                "config": asdict(cfg), "epoch": epoch, "iter_num": iter_num, "env_config": meta["env_config"],
+                "best_success": best_success, "rtg_max": stats["rtg_max"], "n_demos": len(demos),
+                "skills": list(env.SKILLS)}
+
+    check = success_check_fn() if cfg.eval_every > 0 and master else None
+    if master:
+        new_csv = not (cfg.resume and os.path.exists(csv_path))
+        os.makedirs(os.path.dirname(os.path.abspath(csv_path)), exist_ok=True)
+        csv_file = open(csv_path, "w" if new_csv else "a", newline="")
+        writer = csv.DictWriter(csv_file, CSV_FIELDS)
+        if new_csv:
+            writer.writeheader()
+    sums, n_sum, t_start, it_done = {}, 0, time.time(), 0
+    t_int = time.time()
+    for epoch in range(start_epoch, cfg.epochs):
+        windows = epoch_windows(demos, cfg, epoch)
+        iters = len(windows) // cfg.batch_size
+        if epoch == start_epoch:
+            log(f"epoch = {min(cfg.demos_per_epoch, len(demos))} demos, {len(windows)} windows of "
+                f"{cfg.context} steps, {iters} iterations of {cfg.batch_size} windows")
+        raw.train()
+        for it in range(iters):
+            lr = get_lr(epoch + it / iters, cfg)
+            for g in opt.param_groups:
+                g["lr"] = lr
+            mine = windows[it * cfg.batch_size + rank * B:it * cfg.batch_size + (rank + 1) * B]
+            batch = get_batch(demos, mine, cfg.context, device)
+            with autocast:
+                out = net(batch)
+            losses = raw.compute_loss(out, batch)
+            opt.zero_grad(set_to_none=True)
+            losses["loss"].backward()
+            if cfg.grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_(raw.parameters(), cfg.grad_clip)
+            opt.step()
+            iter_num += 1
+            it_done += 1
+            for k, v in losses.items():
+                sums[k] = sums.get(k, 0.0) + v.item()
+            n_sum += 1
+            if master and (iter_num % cfg.log_interval == 0 or it == iters - 1):
+                dt = (time.time() - t_int) / n_sum
+                rate = (time.time() - t_start) / it_done
+                eta = rate * ((cfg.epochs - epoch - 1) * iters + iters - it - 1)
+                row = {"epoch": epoch, "iter": iter_num, "lr": lr, "ms_iter": round(dt * 1e3, 1),
+                       "samples_s": round(cfg.batch_size / dt, 1), **{k: v / n_sum for k, v in sums.items()}}
+                writer.writerow(row)
+                csv_file.flush()
+                terms = " ".join(f"{k} {sums[k] / n_sum:.4f}" for k in LOSS_TERMS[1:] if k in sums)
+                log(f"[{epoch + 1:3d}/{cfg.epochs} {it + 1:4d}/{iters}] loss {row['loss']:.4f} ({terms}) "
+                    f"lr {lr:.2e} | {dt * 1e3:.0f} ms/iter, {row['samples_s']:.1f} samples/s, "
+                    f"eta {eta / 60:.1f} min")
+                sums, n_sum, t_int = {}, 0, time.time()
+
+        # end of epoch: rank 0 saves CKPT.last.pt, maybe checks success and keeps the best
+        if master:
+            save_atomic(checkpoint(epoch + 1), last_path)
+            done = epoch + 1
+            if check is not None and (done % cfg.eval_every == 0 or done == cfg.epochs):
+                t_eval = time.time()
+                success = float(check(last_path, cfg.eval_episodes, cfg.seed))
+                log(f"epoch {done}: seen success {success:.3f} ({cfg.eval_episodes} episodes, "
+                    f"{time.time() - t_eval:.0f} s), best so far {max(success, best_success):.3f}")
+                writer.writerow({"epoch": epoch, "iter": iter_num, "success": success})
+                csv_file.flush()
+                if success > best_success:  # Sec. 4.2: report the checkpoint with the best seen success
+                    best_success = success
+                    save_atomic(checkpoint(done), cfg.out)
+                    save_atomic(checkpoint(done), last_path)
+        if ddp:
+            dist.barrier()
+        t_int = time.time()  # saving and success checks do not count as iteration time
+
+    if master:
+        if check is None:
+            save_atomic(checkpoint(cfg.epochs), cfg.out)
+        csv_file.close()
+        log(f"done in {(time.time() - t_start) / 60:.1f} min: {cfg.out}"
+            + (f" (best seen success {best_success:.3f})" if best_success >= 0 else ""))
+    if ddp:
+        dist.destroy_process_group()
+    return cfg.out
+
+
+# --- command line ---
+
+def parse_args(argv=None):
+    """argparse generated from TrainConfig: --name-with-dashes (or underscores), one help line each."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    docs = field_docs(TrainConfig)
+    for f in fields(TrainConfig):
+        names = [f"--{f.name.replace('_', '-')}"] + ([f"--{f.name}"] if "_" in f.name else [])
+        if f.type is bool:
+            p.add_argument(*names, dest=f.name, action=argparse.BooleanOptionalAction, default=f.default,
+                           help=docs[f.name])
+        else:
+            p.add_argument(*names, dest=f.name, type=f.type, default=f.default, help=docs[f.name])
+    return TrainConfig(**vars(p.parse_args(argv)))
+
+
+def field_docs(cls):
+    """The docstring line under each dataclass field, read from the source."""
+    docs, name = {}, None
+    for line in inspect.getsource(cls).splitlines()[2:]:  # skip the decorator and the class line
+        s = line.strip()
+        if name and s.startswith('"""'):
+            docs[name], name = s.strip('"'), None
+        elif ":" in s and not s.startswith('"'):
+            name = s.split(":")[0].strip()
+    return docs
+
+
+if __name__ == "__main__":
+    train(parse_args())
