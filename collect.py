@@ -75,7 +75,7 @@ class Config:
 
 FORMAT_VERSION = 1
 EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
-TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.tmp$")
+TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.\d+\.tmp$")   # ep_k.npz.<pid>.tmp
 # meta.json entries that must agree before new episodes are added to an existing directory
 MUST_MATCH = ("format", "env_config", "seed", "noise", "keep_failed", "plan")
 
@@ -128,6 +128,8 @@ def load_episode(path):
         raise ValueError(f"{path}: skill ids outside [0, {len(env.SKILLS)})")
     if not (0 <= data["receptacle"].min() and data["receptacle"].max() <= len(env.RECEPTACLES)):
         raise ValueError(f"{path}: receptacle labels outside [0, {len(env.RECEPTACLES)}]")
+    if not np.isin(data["action"][:, env.GRIP], env.GRIP_VALUES).all():
+        raise ValueError(f"{path}: grip commands (action[:, {env.GRIP}]) outside {env.GRIP_VALUES}")
     if str(data["difficulty"]) not in env.DIFFICULTIES:
         raise ValueError(f"{path}: difficulty {data['difficulty']!r} not in {env.DIFFICULTIES}")
     return data
@@ -162,16 +164,17 @@ def record_episode(e, episode, seed, noise):
 
 
 def collect_job(job):
-    """Worker entry: record episode k to its temporary file -> (k, success, steps)."""
+    """Worker entry: record episode k to a temporary file -> (temporary path, success, steps)."""
     k, episode, seed, noise, env_kwargs, out = job
     key = json.dumps(env_kwargs, sort_keys=True)
     if key not in _worker_env:
         _worker_env.clear()
         _worker_env[key] = env.RearrangeEnv(**env_kwargs)
     data = record_episode(_worker_env[key], episode, seed, noise)
-    with open(episode_path(out, k) + ".tmp", "wb") as f:   # a file object: savez adds no suffix
-        np.savez_compressed(f, **data)
-    return k, bool(data["success"]), len(data["action"])
+    tmp = f"{episode_path(out, k)}.{os.getpid()}.tmp"   # per process: an orphaned worker of a killed
+    with open(tmp, "wb") as f:                          # run cannot write into this run's file
+        np.savez_compressed(f, **data)                  # (a file object: savez adds no suffix)
+    return tmp, bool(data["success"]), len(data["action"])
 
 
 # --- the dataset directory ---
@@ -208,7 +211,7 @@ def check_or_write_meta(out, meta):
     path = os.path.join(out, "meta.json")
     meta = json.loads(json.dumps(meta))   # tuples -> lists, as they come back from disk
     if not os.path.exists(path):
-        tmp = path + ".tmp"
+        tmp = f"{path}.{os.getpid()}.tmp"
         with open(tmp, "w") as f:
             json.dump(meta, f, indent=2)
         os.replace(tmp, path)
@@ -227,15 +230,19 @@ def check_or_write_meta(out, meta):
         print(f"note: {path} was written with {old.get('versions')}, now {meta['versions']}")
 
 
-def scan_dir(out, shard_i, shard_n):
-    """Validate every episode file in out -> {k: summary}; remove this shard's stale temporary files."""
+def remove_temps(out, shard_i, shard_n):
+    """Remove this shard's temporary files: partial results of a killed run or of unfinished jobs."""
+    for name in os.listdir(out):
+        m = TEMP_FILE.match(name)
+        if m and int(m.group(1)) % shard_n == shard_i:
+            os.remove(os.path.join(out, name))
+
+
+def scan_dir(out):
+    """Validate every episode file in out -> {k: summary}."""
     have = {}
     for name in sorted(os.listdir(out)):
         path = os.path.join(out, name)
-        temp = TEMP_FILE.match(name)
-        if temp and int(temp.group(1)) % shard_n == shard_i:
-            os.remove(path)   # left by a killed run: its episode is simply run again
-            continue
         if not name.endswith(".npz"):
             continue
         m = EPISODE_FILE.match(name)
@@ -244,7 +251,7 @@ def scan_dir(out, shard_i, shard_n):
         data = load_episode(path)
         have[int(m.group(1))] = {"success": bool(data["success"]), "index": int(data["index"]),
                                  "seed": int(data["seed"]), "layout": int(data["layout"]),
-                                 "difficulty": str(data["difficulty"]), "steps": len(data["action"])}
+                                 "difficulty": str(data["difficulty"])}
     return have
 
 
@@ -288,7 +295,8 @@ def collect(cfg):
     env_kwargs = env_kwargs_of(cfg)
     os.makedirs(cfg.out, exist_ok=True)
     check_or_write_meta(cfg.out, make_meta(cfg, env_kwargs))
-    have = scan_dir(cfg.out, shard_i, shard_n)
+    remove_temps(cfg.out, shard_i, shard_n)
+    have = scan_dir(cfg.out)
     episode_of = episode_source("train", cfg.seed)
     indices = itertools.count(shard_i, shard_n)
     pool = mp.get_context("spawn").Pool(cfg.workers) if cfg.workers > 1 else None
@@ -316,9 +324,8 @@ def collect(cfg):
             if work is None:
                 success = have[k]["success"]
             else:
-                _, success, n_steps = work.get() if pool else collect_job(work)
+                tmp, success, n_steps = work.get() if pool else collect_job(work)
                 ran, ran_success, steps = ran + 1, ran_success + success, steps + n_steps
-                tmp = episode_path(cfg.out, k) + ".tmp"
                 if success or cfg.keep_failed:
                     os.replace(tmp, episode_path(cfg.out, k))   # atomic: a file is whole or absent
                 else:
@@ -335,9 +342,7 @@ def collect(cfg):
         if pool:   # pending is empty once the last needed episode is in; else stop the workers now
             pool.terminate() if pending else pool.close()
             pool.join()
-        for k, work in pending:   # in flight when we stopped: drop the partial results
-            if work is not None and os.path.exists(episode_path(cfg.out, k) + ".tmp"):
-                os.remove(episode_path(cfg.out, k) + ".tmp")
+        remove_temps(cfg.out, shard_i, shard_n)
     return {"kept": kept, "drawn": drawn, "ran": ran, "ran_success": ran_success,
             "seconds": time.time() - t0}
 
@@ -349,7 +354,7 @@ def dataset_stats(out):
     names = sorted(n for n in os.listdir(out) if n.endswith(".npz"))
     skills = np.zeros(len(env.SKILLS), np.int64)
     by_diff = {d: [0, 0] for d in env.DIFFICULTIES}
-    lengths, size = [], os.path.getsize(os.path.join(out, "meta.json"))
+    lengths, size = [], sum(os.path.getsize(os.path.join(out, n)) for n in os.listdir(out))
     for name in names:
         path = os.path.join(out, name)
         if not EPISODE_FILE.match(name):
@@ -359,7 +364,6 @@ def dataset_stats(out):
         by_diff[str(data["difficulty"])][0] += 1
         by_diff[str(data["difficulty"])][1] += bool(data["success"])
         lengths.append(len(data["action"]))
-        size += os.path.getsize(path)
     n = len(names)
     return {"episodes": n, "steps": int(sum(lengths)),
             "steps_min_mean_max": [min(lengths, default=0), float(np.mean(lengths)) if n else 0.0,
@@ -396,11 +400,11 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     docs = field_docs(Config)
     for f in dataclasses.fields(Config):
-        flag = "--" + f.name.replace("_", "-")
+        flag, help_ = "--" + f.name.replace("_", "-"), docs[f.name].replace("%", "%%")
         if isinstance(f.default, bool):
-            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs[f.name])
+            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=help_)
         else:
-            p.add_argument(flag, type=type(f.default), default=f.default, help=docs[f.name])
+            p.add_argument(flag, type=type(f.default), default=f.default, help=help_)
     return Config(**vars(p.parse_args(argv)))
 
 

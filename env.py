@@ -78,7 +78,7 @@ class EnvConfig:
 
 PHYSICS_DT = 1.0 / 120.0          # Appendix B: PD control at 120 Hz ...
 FRAME_SKIP = 4                    # ... policy at 30 Hz
-OPEN_FRACTION = 0.8               # a receptacle counts as open above this fraction of its range
+OPEN_FRACTION = 0.7               # a receptacle counts as open above this fraction of its range
 SUCCESS_DIST = 0.15               # Sec. 3: object within 15 cm of the goal
 GRASP_DIST = 0.03                 # suction attaches when the cup is this close to an object or handle
 OBJ_HALF = 0.03                   # objects are 6 cm cubes
@@ -206,7 +206,7 @@ def interaction_poses(layout):
             poses["cabinet_pick"] = (*_local_to_world(f, (f.size[0] / 2 + DRAWER_TRAVEL + 0.45, 0.0)), face)
         elif f.kind == "fridge":
             poses["fridge"] = (*_local_to_world(f, (f.size[0] / 2 + 0.55, 0.0)), face)
-            poses["fridge_door"] = (*_local_to_world(f, (f.size[0] / 2 + 0.85, 0.0)), face)
+            poses["fridge_door"] = (*_local_to_world(f, (f.size[0] / 2 + 0.95, 0.25)), face)   # arc within reach
     return poses
 
 
@@ -302,7 +302,9 @@ def make_episodes(split, n, seed=0):
         kind = KINDS[i % 4]
         surfaces = [f.name for f in layout.furniture if f.kind == "surface"]
         obj_place = str(rng.choice(RECEPTACLES)) if kind in ("object_closed", "very_hard") else str(rng.choice(surfaces))
-        goal_choices = [p for p in (RECEPTACLES if kind in ("goal_closed", "very_hard") else surfaces) if p != obj_place]
+        # object and goal never in the two drawers of one cabinet: an open drawer covers the other
+        goal_choices = [p for p in (RECEPTACLES if kind in ("goal_closed", "very_hard") else surfaces)
+                        if p != obj_place and not (p.startswith("drawer") and obj_place.startswith("drawer"))]
         goal_place = str(rng.choice(goal_choices))
         places = [obj_place] + [str(rng.choice(surfaces + list(RECEPTACLES))) for _ in range(N_OBJECTS - 1)]
         positions, used = [], [place_position(layout, goal_place, rng, opened=True)]
@@ -419,7 +421,7 @@ def _build_fridge(body, dx, dy, h):
     _box(body, "fridge_shelf2", (0, 0, 1.15), (dx - 0.02, dy - 0.04, 0.01), col)
     door = body.add_body(name="fridge", pos=[dx + 0.015, -dy, 0])       # hinge on the right edge
     door.add_joint(name="fridge_hinge", type=JT.mjJNT_HINGE, axis=[0, 0, -1], range=[0, DOOR_RANGE],
-                   damping=5.0, frictionloss=1.0)
+                   damping=5.0, frictionloss=5.0)   # stays where it is left
     _box(door, "fridge_door", (0, dy, h / 2), (0.015, dy, h / 2 - 0.01), col, mass=3.0)
     door.add_geom(name="fridge_handle", type=G.mjGEOM_CAPSULE, fromto=[0.06, 2 * dy - 0.08, 0.85, 0.06, 2 * dy - 0.08, 1.15],
                   size=[0.015, 0, 0], rgba=[0.2, 0.2, 0.2, 1], mass=0.1)

@@ -72,14 +72,13 @@ class Config:
 
 
 EVAL_SEED = 0                                   # fixed seed of the evaluation episode lists
-SPLIT_CODES = {"train": 0, "seen": 1, "unseen": 2}
 GROUPS = (("all", "All"), ("easy", "Easy"), ("hard", "Hard"), ("very_hard", "Very Hard"))
 CONDITIONS = ("no_perturb", "perturb")
 
 
 def reset_seed(split, index, rollout_seed):
     """Reset seed of one rollout: a function of the episode and the rollout seed only."""
-    return int(np.random.SeedSequence([EVAL_SEED, SPLIT_CODES[split], index, rollout_seed]).generate_state(1)[0])
+    return int(np.random.SeedSequence([EVAL_SEED, env.SPLITS[split], index, rollout_seed]).generate_state(1)[0])
 
 
 def target_in_drawer(episode):
@@ -111,7 +110,7 @@ def load_checkpoint(path):
     except Exception as err:  # whatever torch.load or the model raise, the cause is the file
         if isinstance(err, ValueError) and path in str(err):
             raise
-        reason = (str(err).strip().splitlines() or [""])[0]
+        reason = " ".join(str(err).split())[:300]
         raise ValueError(f"{path}: not a policy checkpoint written by train.py "
                          f"({type(err).__name__}: {reason})") from err
 
@@ -403,13 +402,13 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     docs = field_docs(Config)
     for f in dataclasses.fields(Config):
-        flag = "--" + f.name.replace("_", "-")
+        flag, help_ = "--" + f.name.replace("_", "-"), docs[f.name].replace("%", "%%")
         if f.default_factory is list:
-            p.add_argument(flag, action="append", default=[], help=docs[f.name])
+            p.add_argument(flag, action="append", default=[], help=help_)
         elif isinstance(f.default, bool):
-            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=docs[f.name])
+            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=help_)
         else:
-            p.add_argument(flag, type=type(f.default), default=f.default, help=docs[f.name])
+            p.add_argument(flag, type=type(f.default), default=f.default, help=help_)
     return Config(**vars(p.parse_args(argv)))
 
 

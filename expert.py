@@ -26,7 +26,7 @@ NAV_INFLATE = 0.4           # m: planning clearance of the base centre (robot ra
 LOOKAHEAD = 0.35            # m: pure-pursuit lookahead along the path
 NAV_TIMEOUT = 700           # steps per skill before it gives up
 MANIP_TIMEOUT = 300
-STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45, "cabinet": 0.62, "fridge_door": 0.85}  # base to front face, m
+STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to the front face, m  # base to front face, m
 DOOR_TARGET = 1.6           # rad the expert swings the fridge door to (range 1.75)
 DOWN = np.array([0.0, 0.0, -1.0])
 
@@ -132,10 +132,8 @@ class Expert:
         return (*xy, f.yaw + np.pi)
 
     def _open_pose(self, place):
-        f = self._furniture(place)
-        n, _, face = self._frame(f)
-        xy = face + n * STANDOFF["cabinet" if f.kind == "cabinet" else "fridge_door"]
-        return (*xy, f.yaw + np.pi)
+        """Where the base stands to open the receptacle at `place` (env.interaction_poses)."""
+        return self.p["poses"]["fridge_door" if place == "fridge" else "cabinet"]
 
     def _arm_action(self, q_des, base=(0.0, 0.0), grip=0.0):
         """Joint-delta action that moves the arm's target toward q_des at the env's max rate."""
@@ -361,8 +359,17 @@ class Expert:
                     yield self._arm_action(self.p["arm_target"], (-0.3 / self.env.config.lin_speed, 0.0))
         for _ in range(2):
             yield self._arm_action(self.p["arm_target"], grip=-1.0)
-        back = self.p["ee"] + np.array([*self._frame(f)[0], 0.0]) * 0.1
-        yield from self._path_arm([back], None)
+        ee = self.p["ee"]
+        if rec == "fridge":                      # off the handle, then out past the door's free edge
+            th = self.p["open_fraction"][k] * env.DOOR_RANGE
+            away = np.array([*(n * np.cos(th) - lat * np.sin(th)), 0.0])
+            panel = np.array([*(n * np.sin(th) + lat * np.cos(th)), 0.0])
+            past = ee + away * 0.05 + panel * 0.2
+            yield from self._path_arm([ee + away * 0.05, past, past - away * 0.25], None)   # round the edge
+            x, y, yaw = self.p["base"]
+            yield from self._drive_to((*(np.array([x, y]) + n * 0.25), yaw))          # room to fold the arm
+        else:                                    # straight back from the drawer handle
+            yield from self._path_arm([ee + np.array([*n, 0.0]) * 0.12], None)
         yield from self._rest()
 
     def _swing_door(self, k, f):

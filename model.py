@@ -56,8 +56,8 @@ class ModelConfig:
     """layers per transformer (Sec. 4.1: 2)"""
     n_head: int = 4
     """attention heads"""
-    dropout: float = 0.1
-    """dropout in the transformer blocks, as in the Decision Transformer"""
+    dropout: float = 0.0
+    """dropout in the transformer blocks (the Decision Transformer used 0.1)"""
     encoder: str = "cnn"
     """depth encoder: cnn (small, strided) or resnet18 (the paper's, with GroupNorm)"""
     variant: str = "st"
@@ -67,20 +67,22 @@ class ModelConfig:
 # --- observation encoders (Sec. 4.1 "Input") ---
 
 class SmallCNN(nn.Module):
-    """Strided 3x3 convolutions down to 4x4, then a linear layer: the fast default encoder."""
+    """A 4x4 stride-4 "patchify" convolution, strided 3x3 convolutions down to about 4x4, and a
+    linear layer: the fast default encoder. Channels-last weights and inputs make the CPU
+    convolutions ~3x faster (oneDNN)."""
 
     def __init__(self, size, out_dim):
         super().__init__()
-        layers, ch = [], 1
-        for i in range(max(1, int(math.log2(size // 4)))):
-            nxt = min(64, 16 * 2 ** i)
-            layers += [nn.Conv2d(ch, nxt, 3, stride=2, padding=1), nn.ReLU()]
-            ch = nxt
-        self.convs = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(4), nn.Flatten())
-        self.fc = nn.Linear(ch * 16, out_dim)
+        layers, ch, s = [nn.Conv2d(1, 32, 4, stride=4), nn.ReLU()], 32, size // 4
+        while s >= 8:
+            layers += [nn.Conv2d(ch, min(2 * ch, 64), 3, stride=2, padding=1), nn.ReLU()]
+            ch, s = min(2 * ch, 64), (s + 1) // 2
+        self.convs = nn.Sequential(*layers).to(memory_format=torch.channels_last)
+        self.fc = nn.Linear(ch * s * s, out_dim)
 
     def forward(self, x):  # (N, 1, H, W) -> (N, out_dim)
-        return F.relu(self.fc(self.convs(x)))
+        h = self.convs(x.contiguous(memory_format=torch.channels_last))
+        return F.relu(self.fc(h.flatten(1)))
 
 
 class BasicBlock(nn.Module):

@@ -23,6 +23,16 @@ TINY = dict(d_vis=16, d_state=16, d_model=32, n_layer=2, n_head=2, dropout=0.0) 
 
 # --- helpers ---
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny networks run fastest on one thread, and on a busy 2-core machine two OpenMP threads
+    stall each other (a few ms per op)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def write_demos(path, n_episodes=4, steps=(40, 70), size=16, seed=0, env_config=None):
     """A tiny synthetic dataset in collect.py's format: ep_XXXXXX.npz + meta.json."""
     rng = np.random.default_rng(seed)
@@ -83,7 +93,7 @@ def trained(tmp_path_factory):
     out = str(root / "ckpt" / "st.pt")
     stdout = run_script([sys.executable, "train.py", "--data", data, "--out", out, "--epochs", "2",
                          "--warmup-epochs", "1", "--batch-size", "4", "--d-model", "32", "--n-head", "2",
-                         "--context", "8", "--log-interval", "1", "--seed", "1"])
+                         "--context", "8", "--log-interval", "1", "--seed", "1", "--threads", "1"])
     return data, out, stdout
 
 
@@ -284,7 +294,7 @@ def test_env_config_mismatch_is_refused(trained, tmp_path):
     for name in ("st.pt", "st.last.pt", "st.csv"):
         shutil.copy(os.path.join(os.path.dirname(out), name), tmp_path / name)
     cfg = train.TrainConfig(data=other, out=str(tmp_path / "st.pt"), resume=True, epochs=3, batch_size=4,
-                            d_model=32, n_head=2, context=8)
+                            d_model=32, n_head=2, context=8, threads=1)
     with pytest.raises(ValueError, match="env_config"):
         train.train(cfg)
     cfg.resume, cfg.init = False, out
@@ -297,7 +307,7 @@ def test_resume_continues(trained, tmp_path):
     for name in ("st.pt", "st.last.pt", "st.csv"):
         shutil.copy(os.path.join(os.path.dirname(out), name), tmp_path / name)
     cfg = train.TrainConfig(data=data, out=str(tmp_path / "st.pt"), resume=True, epochs=3, warmup_epochs=1,
-                            batch_size=4, d_model=32, n_head=2, context=8, log_interval=1, seed=1)
+                            batch_size=4, d_model=32, n_head=2, context=8, log_interval=1, seed=1, threads=1)
     train.train(cfg)
     assert torch.load(str(tmp_path / "st.last.pt"), weights_only=True)["epoch"] == 3
 
