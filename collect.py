@@ -24,9 +24,7 @@ File format (readable with `numpy.load(path, allow_pickle=False)`), T steps:
     scalars: success bool, layout int, difficulty str, seed int (reset seed), index int.
 """
 import argparse
-import ast
 import dataclasses
-import inspect
 import itertools
 import json
 import multiprocessing as mp
@@ -389,16 +387,9 @@ def print_stats(out):
 
 # --- command line ---
 
-def field_docs(cls):
-    """Field name -> the docstring written under it, for --help."""
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
-            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
-
-
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    docs = field_docs(Config)
+    docs = env.field_docs(Config)
     for f in dataclasses.fields(Config):
         flag, help_ = "--" + f.name.replace("_", "-"), docs[f.name].replace("%", "%%")
         if isinstance(f.default, bool):

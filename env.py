@@ -14,7 +14,9 @@ Public names used by the other stages: SKILLS, RECEPTACLES, STATE_LAYOUT, state_
 depth_to_uint8, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout, gym_env.
 """
 import argparse
+import ast
 import dataclasses
+import inspect
 import time
 
 import mujoco
@@ -931,6 +933,13 @@ def bench(config, episodes=5, steps=400, seed=0):
     return n / total
 
 
+def field_docs(cls):
+    """Field name -> the docstring written under it, for --help."""
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
+            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--bench", action="store_true", help="print steps/s with a breakdown")
@@ -938,10 +947,13 @@ def main():
     p.add_argument("--xml", metavar="PATH", help="write the layout's MJCF to PATH")
     p.add_argument("--layout", type=int, default=0, help="layout id for --view / --xml")
     p.add_argument("--sizes", default="", help="comma-separated depth sizes to bench, e.g. 32,64,128")
+    docs = field_docs(EnvConfig)
     for f in dataclasses.fields(EnvConfig):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default) if f.type != bool else None,
-                       default=f.default, help=f.__doc__ if hasattr(f, "__doc__") else None,
-                       **({"action": argparse.BooleanOptionalAction} if isinstance(f.default, bool) else {}))
+        if isinstance(f.default, bool):        # no type=bool: --perturb / --no-perturb
+            p.add_argument(f"--{f.name.replace('_', '-')}", action=argparse.BooleanOptionalAction,
+                           default=f.default, help=docs.get(f.name))
+        else:
+            p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default, help=docs.get(f.name))
     args = p.parse_args()
     config = EnvConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(EnvConfig)})
     if args.xml:

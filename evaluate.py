@@ -21,9 +21,7 @@ and with the perturbation (the drawer snaps shut once after it has been open for
 Results go to --out (JSON with every rollout) and the same name with .md (the tables).
 """
 import argparse
-import ast
 import dataclasses
-import inspect
 import json
 import multiprocessing as mp
 import os
@@ -391,16 +389,9 @@ def evaluate(cfg):
 
 # --- command line ---
 
-def field_docs(cls):
-    """Field name -> the docstring written under it, for --help."""
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
-            if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
-
-
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    docs = field_docs(Config)
+    docs = env.field_docs(Config)
     for f in dataclasses.fields(Config):
         flag, help_ = "--" + f.name.replace("_", "-"), docs[f.name].replace("%", "%%")
         if f.default_factory is list:

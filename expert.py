@@ -438,9 +438,13 @@ def run(args):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    docs = env.field_docs(Args)
     for f in dataclasses.fields(Args):
-        p.add_argument(f"--{f.name}", type=type(f.default), default=f.default)
-    run(Args(**vars(p.parse_args())))
+        p.add_argument(f"--{f.name}", type=type(f.default), default=f.default, help=docs.get(f.name))
+    args = Args(**vars(p.parse_args()))
+    if args.split not in env.SPLITS or args.plan not in ("oracle", "fixed"):
+        p.error(f"--split must be one of {tuple(env.SPLITS)} and --plan oracle or fixed, got {args.split!r}, {args.plan!r}")
+    run(args)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ transformer over the interleaved tokens (x_t, a_{t-1}, z_t), predicts the whole-
 and base means and a 3-way grip distribution. Training uses the true skills as z (teacher forcing,
 Sec. 4.2); a rollout feeds the predicted ones.
 
-Baselines (Sec. 5.2, Sec. 5.5, Appendix C.3), chosen by ModelConfig.variant:
+Baselines (Sec. 5.2, Sec. 5.5, Appendix C.2), chosen by ModelConfig.variant:
     st        Skill Transformer
     no_skill  action inference over (x_t, a_{t-1}) alone: no skill module, no skill tokens
     lstm      the Skill Transformer with both transformers replaced by LSTMs of similar size
@@ -18,7 +18,6 @@ Nothing here runs on its own; it is imported:
     python train.py --data data/demos --out ckpt/st.pt             # trains a model
     python -c "import model; p = model.load_policy('ckpt/st.pt')"  # p.act(obs) -> action, skill
 """
-import math
 import os
 from dataclasses import dataclass
 
@@ -51,7 +50,7 @@ class ModelConfig:
     d_state: int = 64
     """state embedding size (paper: 256)"""
     d_model: int = 128
-    """transformer width; a linear map takes the concatenated token to it if the sizes differ"""
+    """transformer width (paper: 512; 128 keeps a rollout step under 5 ms on one CPU core)"""
     n_layer: int = 2
     """layers per transformer (Sec. 4.1: 2)"""
     n_head: int = 4
@@ -59,7 +58,7 @@ class ModelConfig:
     dropout: float = 0.0
     """dropout in the transformer blocks (the Decision Transformer used 0.1)"""
     encoder: str = "cnn"
-    """depth encoder: cnn (small, strided) or resnet18 (the paper's, with GroupNorm)"""
+    """depth encoder: cnn (small, fast on a CPU) or resnet18 (the paper's, with GroupNorm)"""
     variant: str = "st"
     """st, no_skill, lstm, dt or dt_skill"""
 
@@ -96,7 +95,8 @@ class BasicBlock(nn.Module):
         self.gn2 = nn.GroupNorm(cout // 16, cout)
         self.down = None
         if stride != 1 or cin != cout:
-            self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.GroupNorm(cout // 16, cout))
+            self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False),
+                                      nn.GroupNorm(cout // 16, cout))
 
     def forward(self, x):
         y = self.gn2(self.conv2(F.relu(self.gn1(self.conv1(x)))))
@@ -178,7 +178,7 @@ class Transformer(nn.Module):
 
 
 class LSTMBackbone(nn.Module):
-    """The lstm baseline (Sec. 5.5, Fig. 6): same tokens, an LSTM in place of the transformer."""
+    """The lstm baseline (Sec. 5.5): same tokens, an LSTM in place of the transformer."""
 
     def __init__(self, cfg):
         super().__init__()
@@ -210,7 +210,7 @@ class SkillTransformer(nn.Module):
         self.vis = SmallCNN(cfg.depth_size, cfg.d_vis) if cfg.encoder == "cnn" else ResNet18(cfg.d_vis)
         self.state_mlp = nn.Sequential(nn.Linear(cfg.state_dim, cfg.d_state), nn.ReLU(),
                                        nn.Linear(cfg.d_state, cfg.d_state), nn.ReLU())
-        d_tok = cfg.d_vis + cfg.d_state
+        d_tok = cfg.d_vis + cfg.d_state  # a linear map takes x_t to d_model if the sizes differ
         self.tok_proj = nn.Identity() if d_tok == cfg.d_model else nn.Linear(d_tok, cfg.d_model)
         self.pos_emb = nn.Parameter(torch.zeros(1, cfg.context, cfg.d_model))  # per-timestep, Sec. 4.1
         # Normalisation of the inputs, set by train.py from the data and saved in the state dict.
@@ -228,14 +228,13 @@ class SkillTransformer(nn.Module):
         if v in ("dt", "dt_skill"):
             self.rtg_emb = nn.Linear(1, cfg.d_model)
         if v == "dt_skill":
-            self.skill_head = nn.Linear(cfg.d_model, cfg.n_skills)  # auxiliary skill loss (Appendix C.3)
+            self.skill_head = nn.Linear(cfg.d_model, cfg.n_skills)  # auxiliary skill loss (Appendix C.2)
         # Action Inference (Sec. 4.1): 12 outputs = 7 arm means, 2 base means, 3 grip logits.
         self.act_emb = nn.Linear(env.ACTION_DIM, cfg.d_model)
         self.action_net = Backbone(cfg)
         self.arm_head = nn.Linear(cfg.d_model, env.ARM.stop - env.ARM.start)
         self.base_head = nn.Linear(cfg.d_model, env.BASE.stop - env.BASE.start)
         self.grip_head = nn.Linear(cfg.d_model, len(env.GRIP_VALUES))
-        self.tokens_per_step = 2 if v == "no_skill" else 3
         self.apply(self._init_weights)
 
     @staticmethod
@@ -333,7 +332,8 @@ def load_checkpoint(path, device="cpu"):
         ckpt = torch.load(path, map_location=device, weights_only=True)
     except Exception as e:
         raise ValueError(f"{path}: not a readable torch checkpoint ({type(e).__name__}: {e})") from e
-    missing = [k for k in ("model", "model_args", "env_config", "rtg_max") if not isinstance(ckpt, dict) or k not in ckpt]
+    needed = ("model", "model_args", "env_config", "rtg_max")
+    missing = [k for k in needed if not isinstance(ckpt, dict) or k not in ckpt]
     if missing:
         raise ValueError(f"{path}: not a Skill Transformer checkpoint (missing {missing}); "
                          "expected the dict that train.py writes")
@@ -375,7 +375,7 @@ class Policy:
         self.rtg = torch.zeros(1, C, device=dev)                           # R_t (dt variants)
         self.mask = torch.zeros(1, C, dtype=torch.bool, device=dev)        # False = padding
         self.last_action = torch.zeros(env.ACTION_DIM, device=dev)
-        self.return_to_go = self.rtg_max  # Appendix C.3: condition on the max return of the demos
+        self.return_to_go = self.rtg_max  # Appendix C.2: condition on the max return of the demos
         self.t = 0
 
     @torch.inference_mode()
@@ -406,6 +406,7 @@ class Policy:
         if "skill_logits" in out:
             skill_id = int(out["skill_logits"][0, -1].argmax())
         grip = env.GRIP_VALUES[int(out["grip_logits"][0, -1].argmax())]
+        # ARM, BASE, GRIP are action[0:7], [7:9], [9]; means clipped to the action box
         action = torch.cat([out["arm"][0, -1], out["base"][0, -1], out["arm"].new_tensor([grip])]).clamp(-1, 1)
         self.last_action = action
         self.t += 1
