@@ -25,8 +25,7 @@ from env import SKILL_IDS
 NAV_INFLATE = 0.4           # m: planning clearance of the base centre (robot radius 0.3 + margin)
 LOOKAHEAD = 0.35            # m: pure-pursuit lookahead along the path
 NAV_TIMEOUT = 700           # steps per skill before it gives up
-MANIP_TIMEOUT = 300
-STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to the front face, m  # base to front face, m
+STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to the front face, m
 DOOR_TARGET = 1.6           # rad the expert swings the fridge door to (range 1.75)
 DOWN = np.array([0.0, 0.0, -1.0])
 
@@ -74,7 +73,6 @@ class Expert:
                   ("navigate", self._work_pose(ep.goal_place, ep.goal)), ("place", None)]
         self.steps = steps
         self.gen, self.skill = None, None
-        self._grid = None
 
     def act(self, obs, reward=0.0):
         """(action float32 (10,), skill id) for the current state; obs is unused: the expert is privileged."""
@@ -154,7 +152,6 @@ class Expert:
             mujoco.mj_kinematics(m, d)
             mujoco.mj_comPos(m, d)              # the Jacobian needs comPos, not kinematics alone
             err = target - d.site_xpos[site]
-            J = None
             mujoco.mj_jacSite(m, d, jacp, jacr, site)
             if axis is not None:
                 cur = d.site_xmat[site].reshape(3, 3)[:, 0]
@@ -216,10 +213,10 @@ class Expert:
         blocked = self._blocked()
         cell = lambda xy: tuple(np.clip((np.asarray(xy) / res).astype(int), 0, np.array(blocked.shape) - 1))
         s, g = cell(start[:2]), cell(goal[:2])
-        free = ~blocked
-        for c in (s, g):                         # start and goal may touch the inflation: free a disc
-            i, j = c
-            free[max(i - 6, 0):i + 7, max(j - 6, 0):j + 7] |= ~env.occupancy_grid(self.p["layout"])[max(i - 6, 0):i + 7, max(j - 6, 0):j + 7]
+        free, static_free = ~blocked, ~self.p["occupancy"]
+        for i, j in (s, g):                      # start and goal may touch the inflation: free a disc
+            disc = slice(max(i - 6, 0), i + 7), slice(max(j - 6, 0), j + 7)
+            free[disc] |= static_free[disc]
         dist = np.full(free.shape, np.inf)
         dist[g] = 0
         front = np.zeros_like(free)
