@@ -53,8 +53,13 @@ class Config:
     """rollout seeds per checkpoint (the +- of a single checkpoint is over these)"""
     workers: int = 2
     """worker processes, each with its own simulators and policies"""
+    batch: int = 8
+    """episodes a worker runs in lock-step, one policy call for all (a network step costs about
+    the same for 8 as for 1 on a CPU); fixes which episodes share a batch, so keep it to compare runs"""
     perturb: bool = False
     """run the perturbation test (Table 2) instead of Table 1"""
+    difficulty: str = ""
+    """only episodes of this difficulty (easy, hard, very_hard): the first N of the split that have it"""
     max_steps: int = 0
     """episode step limit for every method; 0 keeps each method's env config"""
     depth_size: int = 0
@@ -83,28 +88,32 @@ def target_in_drawer(episode):
     return episode.obj_receptacle > 0 and env.RECEPTACLES[episode.obj_receptacle - 1].startswith("drawer")
 
 
-def eval_episodes(split, n, perturb):
-    """The fixed episode list: the first n of the split, or with perturb its first n target-in-drawer ones."""
-    if not perturb:
+def eval_episodes(split, n, perturb, difficulty=""):
+    """The fixed episode list: the first n of the split, or the first n that pass the filters (with
+    perturb: target in a closed drawer; with difficulty: of that difficulty)."""
+    if difficulty and difficulty not in env.DIFFICULTIES:
+        raise ValueError(f"--difficulty must be one of {env.DIFFICULTIES} or empty, got {difficulty!r}")
+    keep = lambda ep: (not perturb or target_in_drawer(ep)) and (not difficulty or ep.difficulty == difficulty)
+    if not perturb and not difficulty:
         return env.make_episodes(split, n, seed=EVAL_SEED)
     drawn = 4 * n
     while True:
-        chosen = [ep for ep in env.make_episodes(split, drawn, seed=EVAL_SEED) if target_in_drawer(ep)]
+        chosen = [ep for ep in env.make_episodes(split, drawn, seed=EVAL_SEED) if keep(ep)]
         if len(chosen) >= n:
             return chosen[:n]
         if drawn > 100 * n + 1000:
-            raise ValueError(f"only {len(chosen)} of the first {drawn} {split} episodes start in a closed drawer")
+            raise ValueError(f"only {len(chosen)} of the first {drawn} {split} episodes pass the filters")
         drawn *= 2
 
 
 # --- policies ---
 
-def load_checkpoint(path):
+def load_checkpoint(path, batch=1):
     """model.load_policy with clear errors: FileNotFoundError or ValueError naming the path."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
-        return model.load_policy(path, device="cpu")
+        return model.load_policy(path, device="cpu", batch=batch)
     except Exception as err:  # whatever torch.load or the model raise, the cause is the file
         if isinstance(err, ValueError) and path in str(err):
             raise
@@ -136,51 +145,72 @@ def parse_method(spec, cfg):
 
 # --- one rollout ---
 
-def rollout(policy, env_instance, episode, seed, on_step=None):
-    """Run one episode with a policy (reset(), act(obs, reward) -> (action, skill)) -> result dict.
+def rollout(policy, envs, episodes, seeds, on_step=None):
+    """Run episodes in lock-step, episode i in envs[i], the policy acting for all of them at once
+    (act_batch(obs list, rewards) -> actions, skills) -> one result dict per episode.
 
-    The reward passed to act is the reward of the previous step (0 on the first), which only the
+    The reward passed to the policy is that of the previous step (0 on the first), which only the
     Decision Transformer baselines read. Skill accuracy compares the policy's skill for an
     observation with the Appendix D label of the same state (the info that came with the obs).
+    A finished episode's env stands still while the others go on; on_step sees episode 0's obs.
     """
-    obs, info = env_instance.reset(seed=seed, options={"episode": episode})
+    n = len(episodes)
+    obs, infos = map(list, zip(*[e.reset(seed=s, options={"episode": ep})
+                                 for e, ep, s in zip(envs, episodes, seeds)]))
     policy.reset()
-    reward, total, steps, predicted, correct, done = 0.0, 0.0, 0, 0, 0, False
-    while not done:
-        if on_step:
-            on_step(obs)
-        action, skill = policy.act(obs, reward)
-        predicted += skill >= 0                # variants without a skill module return -1
-        correct += int(skill) == int(info["skill_gt"])
-        obs, reward, terminated, truncated, info = env_instance.step(action)
-        total, steps, done = total + reward, steps + 1, terminated or truncated
-    return {"index": int(episode.index), "difficulty": episode.difficulty, "kind": episode.kind,
-            "success": bool(info["success"]), "picked": bool(info["picked"]), "perturbed": bool(info["perturbed"]),
-            "failure": info["failure"], "steps": steps, "skill_predicted": int(predicted), "skill_correct": correct,
-            "return": float(total)}
+    reward, total, steps, predicted, correct = [0.0] * n, [0.0] * n, [0] * n, [0] * n, [0] * n
+    done = [False] * n
+    while not all(done):
+        if on_step and not done[0]:
+            on_step(obs[0])
+        actions, skills = policy.act_batch(obs, reward)
+        for i in (i for i in range(n) if not done[i]):
+            predicted[i] += skills[i] >= 0     # variants without a skill module return -1
+            correct[i] += int(skills[i]) == int(infos[i]["skill_gt"])
+            obs[i], reward[i], terminated, truncated, infos[i] = envs[i].step(actions[i])
+            total[i], steps[i], done[i] = total[i] + reward[i], steps[i] + 1, terminated or truncated
+    return [{"index": int(ep.index), "difficulty": ep.difficulty, "kind": ep.kind,
+             "success": bool(info["success"]), "picked": bool(info["picked"]), "perturbed": bool(info["perturbed"]),
+             "failure": info["failure"], "steps": steps[i], "skill_predicted": int(predicted[i]),
+             "skill_correct": correct[i], "return": float(total[i])}
+            for i, (ep, info) in enumerate(zip(episodes, infos))]
+
+
+class ExpertBatch:
+    """One scripted expert per env of a lock-step batch, behind the Policy interface."""
+
+    def __init__(self, envs, plan):
+        self.experts = [expert.Expert(e, plan=plan) for e in envs]
+
+    def reset(self):
+        for x in self.experts:
+            x.reset()
+
+    def act_batch(self, obs, rewards):
+        out = [x.act(o, r) for x, o, r in zip(self.experts, obs, rewards)]
+        return [a for a, _ in out], [z for _, z in out]
 
 
 _envs, _policies = {}, {}   # per worker process: built on first use, reused for later jobs
 
 
-def actor(ref, env_config):
-    """(policy, env) for a method member on an env config, built once per process."""
+def actor(ref, env_config, n=1):
+    """(policy for n episodes, n envs) for a method member on an env config, built once per process."""
     env_key = json.dumps(env_config, sort_keys=True)
-    if env_key not in _envs:
-        _envs[env_key] = env.RearrangeEnv(**env_config)
-    e = _envs[env_key]
-    policy_key = (ref, env_key) if ref.startswith("expert:") else ref   # an expert reads its env
+    envs = _envs.setdefault(env_key, [])
+    envs += [env.RearrangeEnv(**env_config) for _ in range(n - len(envs))]
+    policy_key = (ref, env_key, n) if ref.startswith("expert:") else (ref, n)   # an expert reads its envs
     if policy_key not in _policies:
-        _policies[policy_key] = (expert.Expert(e, plan=ref.split(":", 1)[1]) if ref.startswith("expert:")
-                                 else load_checkpoint(ref))
-    return _policies[policy_key], e
+        _policies[policy_key] = (ExpertBatch(envs[:n], ref.split(":", 1)[1]) if ref.startswith("expert:")
+                                 else load_checkpoint(ref, batch=n))
+    return _policies[policy_key], envs[:n]
 
 
 def rollout_job(job):
-    """Worker entry: job = (tags, ref, env_config, episode, seed) -> tags + rollout result."""
-    tags, ref, env_config, episode, seed = job
-    policy, e = actor(ref, env_config)
-    return dict(tags, **rollout(policy, e, episode, seed))
+    """Worker entry: job = (tags, ref, env_config, episodes, seeds) -> list of tags + rollout result."""
+    tags, ref, env_config, episodes, seeds = job
+    policy, envs = actor(ref, env_config, len(episodes))
+    return [dict(tags, **r) for r in rollout(policy, envs, episodes, seeds)]
 
 
 def init_worker():
@@ -189,10 +219,10 @@ def init_worker():
 
 def success_check(ckpt_path: str, episodes: int, seed: int = 0) -> float:
     """Success rate of a checkpoint on the first `episodes` seen episodes, one process (for train.py)."""
-    policy = load_checkpoint(ckpt_path)
-    e = env.RearrangeEnv(**policy.env_config)
-    results = [rollout(policy, e, ep, reset_seed("seen", ep.index, seed))
-               for ep in env.make_episodes("seen", episodes, seed=EVAL_SEED)]
+    eps = env.make_episodes("seen", episodes, seed=EVAL_SEED)
+    policy = load_checkpoint(ckpt_path, batch=len(eps))
+    envs = [env.RearrangeEnv(**policy.env_config) for _ in eps]
+    results = rollout(policy, envs, eps, [reset_seed("seen", ep.index, seed) for ep in eps])
     return float(np.mean([r["success"] for r in results]))
 
 
@@ -318,8 +348,8 @@ def write_videos(cfg, methods, split):
     """A few rollouts per method as PNG frames: RGB where OpenGL works, else the head depth camera."""
     for m in methods:
         ref, env_config = m["members"][0]
-        policy, e = actor(ref, dict(env_config, perturb=cfg.perturb))
-        render, why = rgb_renderer(e)
+        policy, envs = actor(ref, dict(env_config, perturb=cfg.perturb))
+        render, why = rgb_renderer(envs[0])
         if render is None:
             print(f"video: RGB rendering unavailable ({why}); run with MUJOCO_GL=egl (or osmesa) "
                   f"for it. Writing the head depth camera instead.", flush=True)
@@ -329,7 +359,7 @@ def write_videos(cfg, methods, split):
             frames = []
             grab = (lambda obs: frames.append(render())) if render else \
                 (lambda obs: frames.append(env.depth_to_uint8(obs["depth"])))
-            r = rollout(policy, e, ep, reset_seed(split, ep.index, 0), on_step=grab)
+            r = rollout(policy, envs, [ep], [reset_seed(split, ep.index, 0)], on_step=grab)[0]
             for t, frame in enumerate(frames):
                 write_png(os.path.join(folder, f"{t:05d}.png"), frame)
             print(f"video: {folder} ({len(frames)} frames, success {r['success']})", flush=True)
@@ -343,29 +373,36 @@ def evaluate(cfg):
         raise ValueError(f"--split must be seen, unseen or both, got {cfg.split!r}")
     if not cfg.policy:
         raise ValueError("give at least one --policy (a checkpoint, expert:oracle or expert:fixed)")
+    if cfg.batch < 1 or cfg.workers < 1 or cfg.episodes < 1 or cfg.seeds < 1:
+        raise ValueError(f"--batch, --workers, --episodes and --seeds must be >= 1, got {cfg.batch}, "
+                         f"{cfg.workers}, {cfg.episodes}, {cfg.seeds}")
     splits = ["seen", "unseen"] if cfg.split == "both" else [cfg.split]
     methods = [parse_method(spec, cfg) for spec in cfg.policy]
     conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
-    episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb) for s in splits}
+    episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty) for s in splits}
+    # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list: the same
+    # batches (and so the same numbers) whatever the number of workers.
+    chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
     jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
-             ref, dict(env_config, perturb=c == "perturb"), ep, reset_seed(s, ep.index, seed))
+             ref, dict(env_config, perturb=c == "perturb"), chunk, [reset_seed(s, ep.index, seed) for ep in chunk])
             for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
-            for s in splits for c in conditions for ep in episodes[s]]
-    print(f"evaluating {len(methods)} methods on {', '.join(splits)}: {len(jobs)} rollouts, "
-          f"{cfg.workers} workers", flush=True)
+            for s in splits for c in conditions for chunk in chunks[s]]
+    n_total = sum(len(job[3]) for job in jobs)
+    print(f"evaluating {len(methods)} methods on {', '.join(splits)}: {n_total} rollouts in batches of "
+          f"{cfg.batch}, {cfg.workers} workers", flush=True)
     rollouts, t0, last_log = [], time.time(), time.time()
     pool = mp.get_context("spawn").Pool(cfg.workers, initializer=init_worker) if cfg.workers > 1 else None
     try:
-        for r in (pool.imap_unordered(rollout_job, jobs) if pool else map(rollout_job, jobs)):
-            rollouts.append(r)
+        for batch in (pool.imap_unordered(rollout_job, jobs) if pool else map(rollout_job, jobs)):
+            rollouts += batch
             now = time.time()
-            if now - last_log >= cfg.log_every or len(rollouts) == len(jobs):
+            if now - last_log >= cfg.log_every or len(rollouts) == n_total:
                 last_log, minutes = now, (now - t0) / 60
-                print(f"[{len(rollouts):5d}/{len(jobs)}] {len(rollouts) / minutes:6.1f} ep/min, "
-                      f"eta {(len(jobs) - len(rollouts)) * minutes / len(rollouts):.1f} min", flush=True)
+                print(f"[{len(rollouts):5d}/{n_total}] {len(rollouts) / minutes:6.1f} ep/min, "
+                      f"eta {(n_total - len(rollouts)) * minutes / len(rollouts):.1f} min", flush=True)
     finally:
         if pool:
-            pool.terminate() if len(rollouts) < len(jobs) else pool.close()
+            pool.terminate() if len(rollouts) < n_total else pool.close()
             pool.join()
     rollouts.sort(key=lambda r: (r["method"], r["member"], r["seed"], r["split"], r["condition"], r["index"]))
     for i, m in enumerate(methods):

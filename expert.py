@@ -275,7 +275,7 @@ class Expert:
             tgt = path[0]
             err = _wrap(np.arctan2(tgt[1] - y, tgt[0] - x) - yaw)
             w = np.clip(4.0 * err / cfg.ang_speed, -1, 1)
-            v = 0.0 if abs(err) > 0.5 else np.clip(2.0 * goal_dist, 0.1, 0.8) * np.cos(err)
+            v = 0.0 if abs(err) > 0.5 else np.clip(2.0 * goal_dist, 0.1, 1.0) * np.cos(err)
             yield self._arm_action(env.ARM_REST, (v, w))
 
     def _drive_to(self, pose, timeout=80):
@@ -293,12 +293,13 @@ class Expert:
     def _pick(self, _):
         p = self.p
         ep = p["episode"]
-        yield from self._drive_to(self._work_pose(ep.object_places[ep.target], p["obj_start"]))
+        place = ep.object_places[ep.target]
+        yield from self._drive_to(self._work_pose(place, p["obj_start"]))
         k = ep.target
         for attempt in range(3):
             obj = self.p["objects"][k]
             top = obj + [0, 0, env.OBJ_HALF + 0.005 - 0.01 * attempt]
-            yield from self._path_arm([top + [0, 0, 0.15], top + [0, 0, 0.05], top], DOWN)
+            yield from self._path_arm([*self._lift(place, top), top + [0, 0, 0.15], top + [0, 0, 0.05], top], DOWN)
             yield self._arm_action(self.p["arm_target"], grip=1.0)
             if self.p["held"] == k:
                 break
@@ -315,12 +316,19 @@ class Expert:
         if self.p["held"] == k:
             offset = self.p["ee"] - self.p["objects"][k]          # object hangs below the cup
             drop = np.asarray(p["goal"]) + offset + [0, 0, 0.04]
-            yield from self._path_arm([drop + [0, 0, 0.15], drop], DOWN)
+            yield from self._path_arm([*self._lift(ep.goal_place, drop), drop + [0, 0, 0.15], drop], DOWN)
         for _ in range(3):
             yield self._arm_action(self.p["arm_target"], grip=-1.0)
         yield from self._path_arm([self.p["ee"] + [0, 0, 0.1]], DOWN)
         yield from self._retract()
         yield from self._rest()
+
+    def _lift(self, place, target):
+        """Over a surface, first raise the cup in place: reaching out from rest would sweep the
+        forearm (and a held object) through the edge of a counter higher than the folded cup."""
+        if self._furniture(place).kind != "surface" or self.p["ee"][2] > target[2] + 0.15:
+            return []
+        return [np.array([*self.p["ee"][:2], target[2] + 0.15])]
 
     def _retract(self):
         """Pull the end effector out of a drawer or the fridge before folding the arm."""

@@ -5,7 +5,9 @@ x_t. The Skill Inference module, a causal transformer over x_{t-C+1..t}, predict
 (and, for training only, which receptacle holds the target). The Action Inference module, a causal
 transformer over the interleaved tokens (x_t, a_{t-1}, z_t), predicts the whole-body action: arm
 and base means and a 3-way grip distribution. Training uses the true skills as z (teacher forcing,
-Sec. 4.2); a rollout feeds the predicted ones.
+Sec. 4.2); a rollout feeds the predicted ones. With ModelConfig.prev_action=False (train.py's
+default) the a_{t-1} tokens are left out: with them the policy learns to copy its last action
+(the copycat problem of behaviour cloning from histories; README, "Results").
 
 Baselines (Sec. 5.2, Sec. 5.5, Appendix C.2), chosen by ModelConfig.variant:
     st        Skill Transformer
@@ -44,7 +46,7 @@ class ModelConfig:
     n_receptacles: int = len(env.RECEPTACLES) + 1
     """auxiliary receptacle classes: 0 = target not in a closed receptacle, i = i-th receptacle"""
     context: int = 30
-    """context length C in steps (Sec. 4.1: C = 30); action inference sees 3C tokens"""
+    """context length C in steps (Sec. 4.1: C = 30); action inference sees 3C tokens (2C without a_{t-1})"""
     d_vis: int = 64
     """visual embedding size (paper: 256)"""
     d_state: int = 64
@@ -61,6 +63,8 @@ class ModelConfig:
     """depth encoder: cnn (small, fast on a CPU) or resnet18 (the paper's, with GroupNorm)"""
     variant: str = "st"
     """st, no_skill, lstm, dt or dt_skill"""
+    prev_action: bool = True
+    """a_{t-1} tokens in action inference; False leaves them out (train.py --action-dropout 1)"""
 
 
 # --- observation encoders (Sec. 4.1 "Input") ---
@@ -230,7 +234,8 @@ class SkillTransformer(nn.Module):
         if v == "dt_skill":
             self.skill_head = nn.Linear(cfg.d_model, cfg.n_skills)  # auxiliary skill loss (Appendix C.2)
         # Action Inference (Sec. 4.1): 12 outputs = 7 arm means, 2 base means, 3 grip logits.
-        self.act_emb = nn.Linear(env.ACTION_DIM, cfg.d_model)
+        if cfg.prev_action:
+            self.act_emb = nn.Linear(env.ACTION_DIM, cfg.d_model)
         self.action_net = Backbone(cfg)
         self.arm_head = nn.Linear(cfg.d_model, env.ARM.stop - env.ARM.start)
         self.base_head = nn.Linear(cfg.d_model, env.BASE.stop - env.BASE.start)
@@ -264,13 +269,13 @@ class SkillTransformer(nn.Module):
         skill z_t ids (B, T) for st/lstm, rtg (B, T) for dt -> dict of per-step outputs (B, T, .),
         or of the current step alone (B, 1, .) with last_only."""
         v, (B, T, D) = self.cfg.variant, x.shape
-        a = self.act_emb(prev_action)
+        a = (self.act_emb(prev_action),) if self.cfg.prev_action else ()  # without it: (x_t, z_t) etc.
         if v in ("st", "lstm"):
-            toks = (x, a, self.skill_emb(skill))  # (x_t, a_{t-1}, z_t), Sec. 4.1
+            toks = (x, *a, self.skill_emb(skill))  # (x_t, a_{t-1}, z_t), Sec. 4.1
         elif v == "no_skill":
-            toks = (x, a)
+            toks = (x, *a)
         else:
-            toks = (self.rtg_emb((rtg / self.rtg_scale)[..., None]), x, a)  # (R_t, x_t, a_{t-1}), DT
+            toks = (self.rtg_emb((rtg / self.rtg_scale)[..., None]), x, *a)  # (R_t, x_t, a_{t-1}), DT
         pos = self.pos_emb[:, :T]
         seq = torch.stack([t * mask[..., None] + pos for t in toks], dim=2)  # (B, T, k, D)
         # The last token of step t has seen x_{<=t}, a_{<=t-1} (and z_{<=t}): it predicts a_t.
@@ -356,64 +361,75 @@ class Policy:
 
     Per step only the new observation is encoded (past tokens x_t are cached in a rolling,
     left-padded window); the transformers then run over the window, with the *predicted* skills
-    as z tokens, and only the current step's outputs are computed in the last layer."""
+    as z tokens, and only the current step's outputs are computed in the last layer. With
+    batch=B it acts for B episodes at once (evaluate.py's lock-step rollouts): on a CPU a step
+    costs about the same for 8 episodes as for 1, as the small network is bound by per-op overhead."""
 
-    def __init__(self, model, env_config, rtg_max, device="cpu"):
+    def __init__(self, model, env_config, rtg_max, device="cpu", batch=1):
         self.model = model.eval()
         self.cfg = model.cfg
         self.variant = self.cfg.variant
         self.env_config = dict(env_config)
         self.rtg_max = float(rtg_max)
         self.device = torch.device(device)
+        self.batch = batch
         self.reset()
 
     def reset(self):
-        C, dev = self.cfg.context, self.device
-        self.x = torch.zeros(1, C, self.cfg.d_model, device=dev)           # x_t
-        self.prev_action = torch.zeros(1, C, env.ACTION_DIM, device=dev)   # a_{t-1}
-        self.skill = torch.zeros(1, C, dtype=torch.long, device=dev)       # predicted z_t
-        self.rtg = torch.zeros(1, C, device=dev)                           # R_t (dt variants)
-        self.mask = torch.zeros(1, C, dtype=torch.bool, device=dev)        # False = padding
-        self.last_action = torch.zeros(env.ACTION_DIM, device=dev)
-        self.return_to_go = self.rtg_max  # Appendix C.2: condition on the max return of the demos
+        B, C, dev = self.batch, self.cfg.context, self.device
+        self.x = torch.zeros(B, C, self.cfg.d_model, device=dev)           # x_t
+        self.prev_action = torch.zeros(B, C, env.ACTION_DIM, device=dev)   # a_{t-1}
+        self.skill = torch.zeros(B, C, dtype=torch.long, device=dev)       # predicted z_t
+        self.rtg = torch.zeros(B, C, device=dev)                           # R_t (dt variants)
+        self.mask = torch.zeros(B, C, dtype=torch.bool, device=dev)        # False = padding
+        self.last_action = torch.zeros(B, env.ACTION_DIM, device=dev)
+        self.return_to_go = torch.full((B,), self.rtg_max, device=dev)  # Appendix C.2: the max return of the demos
         self.t = 0
 
-    @torch.inference_mode()
     def act(self, obs, reward=0.0):
         """obs: the env's observation dict; reward: the reward of the previous step (dt only).
         Returns (action float32 (10,), predicted skill id, -1 where the variant predicts none)."""
-        depth = env.depth_to_uint8(obs["depth"])  # quantised exactly as the demos are stored
-        S = self.cfg.depth_size
-        if depth.shape != (S, S):
-            raise ValueError(f"depth image is {depth.shape}, the model was trained on ({S}, {S})")
+        actions, skills = self.act_batch([obs], [reward])
+        return actions[0], skills[0]
+
+    @torch.inference_mode()
+    def act_batch(self, obs, rewards):
+        """One step of each of the B episodes: obs and rewards are lists of B -> (actions (B, 10)
+        float32, list of B skill ids)."""
+        S, B = self.cfg.depth_size, self.batch
+        if len(obs) != B:
+            raise ValueError(f"got {len(obs)} observations for a policy of batch {B}")
+        depth = np.stack([env.depth_to_uint8(o["depth"]) for o in obs])  # quantised as the demos are
+        if depth.shape[1:] != (S, S):
+            raise ValueError(f"depth image is {depth.shape[1:]}, the model was trained on ({S}, {S})")
         if self.t > 0:
-            self.return_to_go -= float(reward)
-        d = torch.from_numpy(depth).to(self.device, torch.float32).div_(255.0).view(1, 1, 1, S, S)
-        s = torch.from_numpy(env.state_vector(obs)).to(self.device).view(1, 1, -1)
+            self.return_to_go -= torch.as_tensor(rewards, dtype=torch.float32, device=self.device)
+        d = torch.from_numpy(depth).to(self.device, torch.float32).div_(255.0).view(B, 1, 1, S, S)
+        s = torch.from_numpy(np.stack([env.state_vector(o) for o in obs])).to(self.device).view(B, 1, -1)
         for name in ("x", "prev_action", "skill", "rtg", "mask"):  # slide the window by one step
             setattr(self, name, torch.roll(getattr(self, name), -1, dims=1))
-        self.x[0, -1] = self.model.embed_obs(d, s)[0, 0]
-        self.prev_action[0, -1] = self.last_action
-        self.rtg[0, -1] = self.return_to_go
-        self.mask[0, -1] = True
-        skill_id = -1
+        self.x[:, -1] = self.model.embed_obs(d, s)[:, 0]
+        self.prev_action[:, -1] = self.last_action
+        self.rtg[:, -1] = self.return_to_go
+        self.mask[:, -1] = True
+        skills = torch.full((B,), -1)
         if self.model.has_skill_module:
             skill_logits, _ = self.model.infer_skill(self.x, self.mask, last_only=True)
-            skill_id = int(skill_logits[0, -1].argmax())
-            self.skill[0, -1] = skill_id
+            skills = skill_logits[:, -1].argmax(-1)
+            self.skill[:, -1] = skills
         out = self.model.infer_action(self.x, self.prev_action, self.mask, skill=self.skill, rtg=self.rtg,
                                       last_only=True)
         if "skill_logits" in out:
-            skill_id = int(out["skill_logits"][0, -1].argmax())
-        grip = env.GRIP_VALUES[int(out["grip_logits"][0, -1].argmax())]
+            skills = out["skill_logits"][:, -1].argmax(-1)
+        grip = out["arm"].new_tensor(env.GRIP_VALUES)[out["grip_logits"][:, -1].argmax(-1)]
         # ARM, BASE, GRIP are action[0:7], [7:9], [9]; means clipped to the action box
-        action = torch.cat([out["arm"][0, -1], out["base"][0, -1], out["arm"].new_tensor([grip])]).clamp(-1, 1)
+        action = torch.cat([out["arm"][:, -1], out["base"][:, -1], grip[:, None]], dim=1).clamp(-1, 1)
         self.last_action = action
         self.t += 1
-        return action.cpu().numpy().astype(np.float32), skill_id
+        return action.cpu().numpy().astype(np.float32), skills.tolist()
 
 
-def load_policy(path, device="cpu"):
-    """Checkpoint written by train.py -> Policy with reset() and act(obs, reward)."""
+def load_policy(path, device="cpu", batch=1):
+    """Checkpoint written by train.py -> Policy with reset(), act(obs, reward) and act_batch."""
     ckpt = load_checkpoint(path, device)
-    return Policy(model_from_checkpoint(ckpt, device), ckpt["env_config"], ckpt["rtg_max"], device)
+    return Policy(model_from_checkpoint(ckpt, device), ckpt["env_config"], ckpt["rtg_max"], device, batch)

@@ -395,9 +395,9 @@ def test_fixed_plan_fails_where_oracle_succeeds():
     hard = [ep for ep in env.make_episodes("unseen", 24) if ep.kind == "object_closed"][:4]
     for ep in hard:
         seed = evaluate.reset_seed("unseen", ep.index, 0)
-        fixed = evaluate.rollout(expert.Expert(e, plan="fixed"), e, ep, seed)
+        fixed = evaluate.rollout(evaluate.ExpertBatch([e], "fixed"), [e], [ep], [seed])[0]
         assert not fixed["success"] and not fixed["picked"], ep
-        if evaluate.rollout(expert.Expert(e, plan="oracle"), e, ep, seed)["success"]:
+        if evaluate.rollout(evaluate.ExpertBatch([e], "oracle"), [e], [ep], [seed])[0]["success"]:
             break
     else:
         pytest.fail(f"the oracle expert failed all of {[ep.index for ep in hard]}")
@@ -422,13 +422,13 @@ def checkpoints(tmp_path_factory):
 def test_evaluate_checkpoints(checkpoints, tmp_path):
     out = tmp_path / "ck.json"
     run("evaluate.py", "--policy", ",".join(checkpoints), "--policy", checkpoints[0], "--seeds", 2,
-        "--episodes", 2, "--workers", 2, "--out", out)
+        "--episodes", 3, "--batch", 2, "--workers", 2, "--out", out)
     res = json.loads(out.read_text())
     header, rows = parse_markdown_table((tmp_path / "ck.md").read_text(), "Table 1")
     assert header == ["Method", "All", "Easy", "Hard", "Very Hard"]
     assert [r[0] for r in rows] == [f"st ({','.join(checkpoints)})", f"st ({checkpoints[0]})"]
     joined, single = (m["results"]["unseen"]["no_perturb"] for m in res["methods"])
-    assert len(joined["units"]) == 4 and len(single["units"]) == 2 and len(res["rollouts"]) == 12
+    assert len(joined["units"]) == 4 and len(single["units"]) == 2 and len(res["rollouts"]) == 18
     assert all(r["steps"] <= 25 for r in res["rollouts"])                # the checkpoint's env config
     assert {r["failure"] for r in res["rollouts"]} <= {"timeout", "collision", "collision_accum"}
     assert 0 <= joined["skill_accuracy"]["mean"] <= 100
@@ -608,6 +608,35 @@ def test_padding_matches_rollout():
     np.testing.assert_allclose(out["arm"][0, -1].clamp(-1, 1).numpy(), actions[-1][0][:7], atol=1e-5)
 
 
+def test_prev_action_off_ignores_a_t_minus_1():
+    """ModelConfig(prev_action=False), train.py's --action-dropout 1: a_{t-1} has no effect."""
+    cfg = model.ModelConfig(depth_size=16, context=6, prev_action=False, **TINY)
+    net = model.SkillTransformer(cfg).eval()
+    batch = random_batch(cfg)
+    with torch.no_grad():
+        a = net(batch)["arm"]
+        batch["prev_action"] = -batch["prev_action"]
+        torch.testing.assert_close(net(batch)["arm"], a)
+
+
+def test_batched_policy_matches_single():
+    """act_batch over B episodes gives each the actions and skills it gets alone (evaluate.py --batch)."""
+    cfg = model.ModelConfig(depth_size=16, context=4, **TINY)
+    net = model.SkillTransformer(cfg).eval()
+    single = [model.Policy(net, {"depth_size": 16}, rtg_max=1.0) for _ in range(3)]
+    batched = model.Policy(net, {"depth_size": 16}, rtg_max=1.0, batch=3)
+    rng = np.random.default_rng(1)
+    for _ in range(6):                                     # past the context: the window slides
+        obs = [fake_obs(rng, 16) for _ in range(3)]
+        actions, skills = batched.act_batch(obs, [0.1] * 3)
+        for i, p in enumerate(single):
+            a, z = p.act(obs[i], 0.1)
+            np.testing.assert_allclose(actions[i], a, atol=1e-5)
+            assert skills[i] == z
+    with pytest.raises(ValueError, match="batch 3"):
+        batched.act_batch(obs[:2], [0.0] * 2)
+
+
 def test_focal_loss_matches_cross_entropy_at_gamma_0():
     logits, target = torch.randn(10, 5), torch.randint(0, 5, (10,))
     torch.testing.assert_close(model.focal_loss(logits, target, gamma=0.0).mean(),
@@ -681,6 +710,29 @@ def test_windows_and_padding(tmp_path):
     np.testing.assert_array_equal(batch["prev_action"][1, -1].numpy(), demos[1]["action"][29])
     assert batch["prev_action"][0, 5].abs().sum() == 0  # a_{-1} = 0 at the episode start
     assert batch["rtg"][1, -1] == pytest.approx(demos[1]["reward"][30:].sum(), rel=1e-5)
+
+
+def test_segments_cut_nav_pick_and_nav_place(tmp_path):
+    demos, _ = train.load_demos(write_demos(str(tmp_path / "d"), n_episodes=1, steps=(60, 61)))
+    ep = demos[0]
+    nav, pick, place = (env.SKILL_IDS[k] for k in ("navigate", "pick", "place"))
+    ep["skill"][:] = [nav] * 10 + [pick] * 10 + [nav] * 15 + [place] * 5 + [nav] * 20
+    pieces = train.cut_segments([ep], ["nav-pick", "nav-place"])
+    assert [p["skill"].tolist() for p in pieces] == [[nav] * 10 + [pick] * 10, [nav] * 15 + [place] * 5]
+    np.testing.assert_array_equal(pieces[1]["state"], ep["state"][20:40])
+    assert pieces[1]["prev_action"][0].sum() == 0          # each piece is an episode of its own
+    np.testing.assert_array_equal(pieces[1]["prev_action"][1:], ep["action"][20:39])
+    assert pieces[1]["rtg"][0] == pytest.approx(ep["reward"][20:40].sum(), rel=1e-5)
+    with pytest.raises(ValueError, match="nav-open"):
+        train.cut_segments([ep], ["nav-open"])
+
+
+def test_difficulty_filter_keeps_the_list_order():
+    easy = evaluate.eval_episodes("seen", 3, False, "easy")
+    first = [ep for ep in env.make_episodes("seen", 40, seed=evaluate.EVAL_SEED) if ep.difficulty == "easy"][:3]
+    assert [ep.index for ep in easy] == [ep.index for ep in first]
+    with pytest.raises(ValueError, match="difficulty"):
+        evaluate.eval_episodes("seen", 3, False, "medium")
 
 
 def test_bad_data_is_refused(tmp_path):

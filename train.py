@@ -13,8 +13,8 @@ by a cosine decay to 0, and the checkpoint with the best success on `seen` episo
 
 For --out ckpt/st.pt it writes ckpt/st.pt (the best checkpoint, or the final one when no success
 check runs), ckpt/st.last.pt (every epoch, for --resume) and ckpt/st.csv (the log). Load one for
-rollouts with model.load_policy("ckpt/st.pt"). The defaults train in ~12 min on 2 idle CPU cores
-for 1,000 demos of ~750 steps at 32x32 depth (~280 ms/iter, ~230 windows/s).
+rollouts with model.load_policy("ckpt/st.pt"). The defaults train in 12.6 min on 2 CPU cores on
+1,000 demos of collect.py (967 steps on average, 32x32 depth; ~230 ms/iter, ~275 windows/s).
 """
 import argparse
 import contextlib
@@ -74,12 +74,18 @@ class TrainConfig:
     """learning rate at the start of the warm-up (Appendix A)"""
     weight_decay: float = 0.1
     """AdamW weight decay on weight matrices (not on biases, norms, embeddings of position)"""
+    action_dropout: float = 1.0
+    """fraction of previous-action tokens a_{t-1} zeroed in training (1: all, in rollouts too): with
+    them the policy learns to copy a_{t-1}, the easiest fit to smooth expert actions, and then
+    stalls or turns the wrong way in its own rollouts (the copycat problem; see README)"""
     grad_clip: float = 1.0
     """clip the gradient norm to this (0: off)"""
     seed: int = 0
     """seed of random, numpy and torch; the same seed draws the same windows"""
     max_demos: int = 0
     """use only the first N demos in file order (0: all)"""
+    segments: str = ""
+    """train on pieces of the demos only, e.g. nav-pick,nav-place (Sec. 5.5); empty: whole demos"""
     resume: bool = False
     """continue from CKPT.last.pt (same model, same data env config)"""
     init: str = ""
@@ -171,9 +177,36 @@ def load_episode(path, size):
     if not np.isin(ep["action"][:, env.GRIP], env.GRIP_VALUES).all():
         raise ValueError(f"{path}: action[:, {env.GRIP}] (grip) must be one of {env.GRIP_VALUES}")
     ep["skill"], ep["receptacle"] = ep["skill"].astype(np.int64), ep["receptacle"].astype(np.int64)
+    return add_inputs(ep)
+
+
+def add_inputs(ep):
+    """The inputs a demo implies: prev_action a_{t-1} (zero at its first step) and rtg R_t."""
     ep["prev_action"] = np.concatenate([np.zeros((1, env.ACTION_DIM), np.float32), ep["action"][:-1]])
     ep["rtg"] = np.cumsum(ep["reward"][::-1])[::-1].astype(np.float32)  # R_t = sum of rewards from t on
     return ep
+
+
+SEGMENTS = {"nav-pick": "pick", "nav-place": "place"}
+
+
+def cut_segments(demos, names):
+    """Sec. 5.5, incomplete demonstrations: keep of each demo only the navigation that leads to a
+    skill plus the skill itself (nav-pick, nav-place), each piece a demo of its own."""
+    bad = [n for n in names if n not in SEGMENTS]
+    if bad:
+        raise ValueError(f"segments {bad}: expected names from {tuple(SEGMENTS)}, joined by commas")
+    nav, pieces = env.SKILL_IDS["navigate"], []
+    for ep in demos:
+        for name in names:
+            idx = np.flatnonzero(ep["skill"] == env.SKILL_IDS[SEGMENTS[name]])
+            if len(idx) == 0:
+                continue
+            start = idx[0]
+            while start > 0 and ep["skill"][start - 1] == nav:
+                start -= 1
+            pieces.append(add_inputs({k: ep[k][start:idx[-1] + 1] for k in EPISODE_ARRAYS}))
+    return pieces
 
 
 def load_demos(data_dir, max_demos=0):
@@ -293,6 +326,8 @@ def train(cfg):
     else:
         local_world = int(os.environ.get("LOCAL_WORLD_SIZE", 1))
         torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // local_world))
+    if not 0 <= cfg.action_dropout <= 1:
+        raise ValueError(f"action_dropout must lie in [0, 1], got {cfg.action_dropout}")
     if cfg.batch_size % world:
         raise ValueError(f"batch_size ({cfg.batch_size}) must be a multiple of the DDP world size ({world})")
     B = cfg.batch_size // world  # windows per rank and step
@@ -307,15 +342,18 @@ def train(cfg):
     # data
     t0 = time.time()
     demos, meta = load_demos(cfg.data, cfg.max_demos)
+    if cfg.segments:
+        demos = cut_segments(demos, cfg.segments.split(","))
     n_steps = sum(len(d["action"]) for d in demos)
-    log(f"loaded {len(demos)} demos, {n_steps} steps, depth {demos[0]['depth'].shape[1]}px "
-        f"from {cfg.data} in {time.time() - t0:.1f} s")
+    log(f"loaded {len(demos)} {'pieces (' + cfg.segments + ')' if cfg.segments else 'demos'}, {n_steps} steps, "
+        f"depth {demos[0]['depth'].shape[1]}px from {cfg.data} in {time.time() - t0:.1f} s")
 
     # model
     margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]), context=cfg.context,
                               d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
                               d_model=cfg.d_model, n_layer=cfg.n_layer, n_head=cfg.n_head,
-                              dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant)
+                              dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant,
+                              prev_action=cfg.action_dropout < 1)
     last_path, csv_path = stem(cfg.out) + ".last.pt", stem(cfg.out) + ".csv"
     ckpt, start_epoch, iter_num, best_success = None, 0, 0, -1.0
     if cfg.resume:
@@ -352,8 +390,10 @@ def train(cfg):
     if ddp:
         net = DDP(net, device_ids=[local_rank] if device.type == "cuda" else None)
 
-    def checkpoint(epoch):
-        return {"model": raw.state_dict(), "optimizer": opt.state_dict(), "model_args": asdict(margs),
+    def checkpoint(epoch, resumable=True):
+        # The optimizer state (2/3 of the bytes) goes only into CKPT.last.pt, which --resume reads.
+        return {"model": raw.state_dict(), "optimizer": opt.state_dict() if resumable else None,
+                "model_args": asdict(margs),
                 "config": asdict(cfg), "epoch": epoch, "iter_num": iter_num, "env_config": meta["env_config"],
                 "best_success": best_success, "rtg_max": stats["rtg_max"], "n_demos": len(demos),
                 "skills": list(env.SKILLS)}
@@ -381,6 +421,9 @@ def train(cfg):
                 g["lr"] = lr
             mine = windows[it * cfg.batch_size + rank * B:it * cfg.batch_size + (rank + 1) * B]
             batch = get_batch(demos, mine, cfg.context, device)
+            if 0 < cfg.action_dropout < 1:
+                keep = torch.rand(batch["mask"].shape, device=device) >= cfg.action_dropout
+                batch["prev_action"] = batch["prev_action"] * keep[..., None]
             with autocast:
                 out = net(batch)
             losses = raw.compute_loss(out, batch)
@@ -421,7 +464,7 @@ def train(cfg):
                 csv_file.flush()
                 if success >= best_success:  # Sec. 4.2: keep the best seen success (ties: the later)
                     best_success = success
-                    save_atomic(checkpoint(done), cfg.out)
+                    save_atomic(checkpoint(done, resumable=False), cfg.out)
                     save_atomic(checkpoint(done), last_path)
         if ddp:
             dist.barrier()
@@ -429,7 +472,7 @@ def train(cfg):
 
     if master:
         if check is None:
-            save_atomic(checkpoint(cfg.epochs), cfg.out)
+            save_atomic(checkpoint(cfg.epochs, resumable=False), cfg.out)
         csv_file.close()
         log(f"done in {(time.time() - t_start) / 60:.1f} min: {cfg.out}"
             + (f" (best seen success {best_success:.3f})" if best_success >= 0 else ""))
