@@ -4,14 +4,16 @@ A policy is a checkpoint written by train.py, several checkpoints of one method 
 (training seeds: the table shows mean +- std over them), or the scripted expert: `expert:oracle`
 (our M3 (Oracle): the plan comes from the simulator) or `expert:fixed` (nav, pick, nav, place,
 like TP-SRL / M3). Episodes come from a fixed list, env.make_episodes(split, n, seed=0), and each
-rollout's reset seed is a function of (split, episode, rollout seed), so numbers are comparable
-across runs and do not depend on the number of workers.
+rollout's reset seed is a function of (split, episode, rollout seed); a worker runs consecutive
+episodes of the list in lock-step batches (--batch), one network call per step for all of them.
+So numbers are comparable across runs and do not depend on the number of workers.
 
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --policy expert:fixed \\
                        --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
     python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
+    python evaluate.py --policy ckpt/st.pt --split both --difficulty easy   # Sec. 5.5 analysis runs
 
 Table 1 (Sec. 5.3): success rate in % on All, Easy, Hard and Very Hard episodes. With one checkpoint
 the +- is over rollout seeds (--seeds), with several over training seeds. Table 2 (Sec. 5.4): on

@@ -9,6 +9,7 @@ by a cosine decay to 0, and the checkpoint with the best success on `seen` episo
     python train.py --data data/demos --out ckpt/dt.pt --variant dt       # or no_skill, lstm, dt_skill
     python train.py --data data/demos --out ckpt/st.pt --eval-every 10    # keep the best seen success
     python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
+    python train.py --data data/demos --out ckpt/part.pt --segments nav-pick,nav-place   # Sec. 5.5
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
 
 For --out ckpt/st.pt it writes ckpt/st.pt (the best checkpoint, or the final one when no success
