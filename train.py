@@ -76,9 +76,9 @@ class TrainConfig:
     weight_decay: float = 0.1
     """AdamW weight decay on weight matrices (not on biases, norms, embeddings of position)"""
     action_dropout: float = 1.0
-    """fraction of previous-action tokens a_{t-1} zeroed in training (1: all, in rollouts too): with
-    them the policy learns to copy a_{t-1}, the easiest fit to smooth expert actions, and then
-    stalls or turns the wrong way in its own rollouts (the copycat problem; see README)"""
+    """fraction of previous-action tokens a_{t-1} zeroed in training (1: the model has none, in
+    training and rollouts): with them the policy learns to copy a_{t-1}, the easiest fit to smooth
+    expert actions, and then stalls or turns the wrong way in its own rollouts (copycat; README)"""
     grad_clip: float = 1.0
     """clip the gradient norm to this (0: off)"""
     seed: int = 0
