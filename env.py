@@ -29,9 +29,12 @@ SKILL_IDS = {name: i for i, name in enumerate(SKILLS)}
 RECEPTACLES = ("drawer_0", "drawer_1", "fridge")   # auxiliary label i = RECEPTACLES[i - 1] holds the target; 0 = none
 DIFFICULTIES = ("easy", "hard", "very_hard")
 KINDS = ("easy", "object_closed", "goal_closed", "very_hard")   # hard = object_closed or goal_closed
-STATE_LAYOUT = (("joint", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3), ("goal", 3),
-                ("obj_start_polar", 2), ("goal_polar", 2))
-STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 21
+STATE_LAYOUT = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3),
+                ("goal", 3), ("obj_start_polar", 2), ("goal_polar", 2))
+STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 28
+# joint_target is not in the paper's observation: the arm action moves the servo set-point, which
+# leads the measured joints by ~0.1 rad while the arm moves, so without it the expert's arm label
+# is not a function of what the policy sees (README, "Results").
 ACTION_DIM = 10                                      # 7 arm deltas, 2 base velocities, 1 grip
 ARM, BASE, GRIP = slice(0, 7), slice(7, 9), 9        # action layout
 GRIP_VALUES = (-1.0, 0.0, 1.0)                       # release, keep, grasp = grip classes 0, 1, 2
@@ -481,6 +484,7 @@ class RearrangeEnv:
     |-----------------|-----------|-------------------------------------------------------------|-----------|
     | depth           | (H, W, 1) | head camera depth / depth_max, 90 deg FoV, no hit = 1        | [0, 1]    |
     | joint           | (7,)      | arm joint angles, rad                                       | ARM_RANGE |
+    | joint_target    | (7,)      | the arm servos' set-point, which the arm action moves, rad  | ARM_RANGE |
     | is_holding      | (1,)      | 1 when any object is held                                   | {0, 1}    |
     | ee_rest         | (3,)      | end effector minus its rest position, base frame, m         | ~[-1, 1]  |
     | obj_start       | (3,)      | target's START position minus end effector, base frame, m   | room      |
@@ -794,6 +798,7 @@ class RearrangeEnv:
         return {
             "depth": depth,
             "joint": d.qpos[ids["arm_q"]].astype(np.float32),
+            "joint_target": self._arm_target.astype(np.float32),
             "is_holding": np.array([float(self._held >= 0)], np.float32),
             "ee_rest": (rel[:, 0] - self._ee_rest).astype(np.float32),
             "obj_start": rel[:, 1].astype(np.float32),

@@ -66,11 +66,13 @@ class Expert:
         ep = self.p["episode"]
         steps = []
         if self.plan == "oracle" and ep.goal_receptacle:
-            steps += [("navigate", self._open_pose(ep.goal_place)), ("open", ep.goal_receptacle - 1)]
+            steps += [("navigate", (self._open_pose(ep.goal_place), True)), ("open", ep.goal_receptacle - 1)]
         if self.plan == "oracle" and ep.obj_receptacle:
-            steps += [("navigate", self._open_pose(ep.object_places[ep.target])), ("open", ep.obj_receptacle - 1)]
-        steps += [("navigate", self._work_pose(ep.object_places[ep.target], ep.objects[ep.target])), ("pick", None),
-                  ("navigate", self._work_pose(ep.goal_place, ep.goal)), ("place", None)]
+            steps += [("navigate", (self._open_pose(ep.object_places[ep.target]), True)), ("open", ep.obj_receptacle - 1)]
+        # navigation to a work pose stops at its position: pick and place turn to its heading
+        # themselves, so that a learned pick or place starting from a misaligned base has seen the fix
+        steps += [("navigate", (self._work_pose(ep.object_places[ep.target], ep.objects[ep.target]), False)),
+                  ("pick", None), ("navigate", (self._work_pose(ep.goal_place, ep.goal), False)), ("place", None)]
         self.steps = steps
         self.gen, self.skill = None, None
 
@@ -256,7 +258,8 @@ class Expert:
         ij = (np.linspace(a, b, n) / res).astype(int)
         return bool(free[ij[:, 0], ij[:, 1]].all())
 
-    def _navigate(self, pose):
+    def _navigate(self, arg):
+        pose, align = arg                        # align: end with the turn to the pose's heading
         p = self.p
         path = self._plan_path(p["base"][:2], pose)
         cfg = self.env.config
@@ -267,16 +270,22 @@ class Expert:
                 path.pop(0)
             goal_dist = np.linalg.norm(path[-1] - pos)
             if len(path) == 1 and goal_dist < 0.04:
-                err = _wrap(pose[2] - yaw)
-                if abs(err) < 0.04:
-                    return
-                yield self._arm_action(env.ARM_REST, (0.0, np.clip(3.0 * err / cfg.ang_speed, -0.6, 0.6)))
-                continue
+                if align:
+                    yield from self._turn_to(pose[2])
+                return
             tgt = path[0]
             err = _wrap(np.arctan2(tgt[1] - y, tgt[0] - x) - yaw)
             w = np.clip(4.0 * err / cfg.ang_speed, -1, 1)
             v = 0.0 if abs(err) > 0.5 else np.clip(2.0 * goal_dist, 0.1, 1.0) * np.cos(err)
             yield self._arm_action(env.ARM_REST, (v, w))
+
+    def _turn_to(self, yaw_des, timeout=120):
+        """Turn in place to the heading yaw_des, the arm folded."""
+        for _ in range(timeout):
+            err = _wrap(yaw_des - self.p["base"][2])
+            if abs(err) < 0.04:
+                return
+            yield self._arm_action(env.ARM_REST, (0.0, np.clip(3.0 * err / self.env.config.ang_speed, -0.6, 0.6)))
 
     def _drive_to(self, pose, timeout=80):
         """Short straight move along the current heading to the pose's projection (mobile pick/place)."""
@@ -294,7 +303,9 @@ class Expert:
         p = self.p
         ep = p["episode"]
         place = ep.object_places[ep.target]
-        yield from self._drive_to(self._work_pose(place, p["obj_start"]))
+        pose = self._work_pose(place, p["obj_start"])
+        yield from self._turn_to(pose[2])
+        yield from self._drive_to(pose)
         k = ep.target
         for attempt in range(3):
             obj = self.p["objects"][k]
@@ -311,7 +322,9 @@ class Expert:
     def _place(self, _):
         p = self.p
         ep = p["episode"]
-        yield from self._drive_to(self._work_pose(ep.goal_place, p["goal"]))
+        pose = self._work_pose(ep.goal_place, p["goal"])
+        yield from self._turn_to(pose[2])
+        yield from self._drive_to(pose)
         k = p["target"]
         if self.p["held"] == k:
             offset = self.p["ee"] - self.p["objects"][k]          # object hangs below the cup

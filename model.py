@@ -366,6 +366,9 @@ class Policy:
     costs about the same for 8 episodes as for 1, as the small network is bound by per-op overhead."""
 
     def __init__(self, model, env_config, rtg_max, device="cpu", batch=1):
+        if model.cfg.state_dim != env.STATE_DIM:
+            raise ValueError(f"checkpoint expects {model.cfg.state_dim} state inputs, env.STATE_LAYOUT gives "
+                             f"{env.STATE_DIM}: it was trained on an older observation; retrain it")
         self.model = model.eval()
         self.cfg = model.cfg
         self.variant = self.cfg.variant

@@ -12,6 +12,7 @@ import shutil
 import subprocess
 import sys
 
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -44,6 +45,20 @@ def test_observation_shapes_and_dtypes():
     assert env.state_vector(obs).shape == (env.STATE_DIM,)
     assert env.depth_to_uint8(obs["depth"]).dtype == np.uint8
     assert info["skill_gt"] in range(len(env.SKILLS)) and info["receptacle"] in range(len(env.RECEPTACLES) + 1)
+
+
+def test_joint_target_is_the_sum_of_arm_actions_and_the_joints_follow_it():
+    e = env.RearrangeEnv(depth_size=8)
+    obs, _ = e.reset(seed=0, options={"episode": env.make_episodes("train", 1)[0]})
+    target = obs["joint_target"].astype(float)
+    for _ in range(10):
+        obs, *_ = e.step(np.array([0.5, 0, 0, -0.5, 0, 0, 0, 0, 0, 0], np.float32))
+        target = np.clip(target + np.array([0.5, 0, 0, -0.5, 0, 0, 0]) * e.config.arm_delta,
+                         env.ARM_RANGE[:, 0], env.ARM_RANGE[:, 1])
+    np.testing.assert_allclose(obs["joint_target"], target, atol=1e-5)
+    for _ in range(30):                                   # hold still: the servos catch up
+        obs, *_ = e.step(np.zeros(env.ACTION_DIM, np.float32))
+    np.testing.assert_allclose(obs["joint"], obs["joint_target"], atol=0.05)
 
 
 def test_determinism_same_seed_same_bytes():
@@ -193,6 +208,25 @@ def test_fixed_plan_fails_closed_receptacle_and_labels_follow_plan():
     assert not info["success"]
     order = [s for i, s in enumerate(skills) if i == 0 or s != skills[i - 1]]
     assert order == [env.SKILL_IDS[s] for s in ("navigate", "pick", "navigate", "place")]
+
+
+def test_expert_pick_first_turns_a_misaligned_base_to_its_work_pose():
+    ep = _first("easy", lambda ep: True)
+    e = env.RearrangeEnv(depth_size=8)
+    obs, _ = e.reset(seed=0, options={"episode": ep})
+    x = expert.Expert(e, plan="oracle")
+    x.reset()
+    pose = x._work_pose(ep.object_places[ep.target], ep.objects[ep.target])
+    e.data.qpos[e.ids["base_q"]] = [pose[0], pose[1], pose[2] + 0.4]   # a learned nav's typical error
+    mujoco.mj_forward(e.model, e.data)
+    x.steps = [("pick", None)]
+    for t in range(60):
+        action, skill = x.act(obs)
+        assert skill == env.SKILL_IDS["pick"]
+        if t == 0:
+            assert action[8] < 0 and not action[env.ARM].any()       # turns back, arm still folded
+        obs, *_ = e.step(action)
+    assert abs(expert._wrap(e.privileged()["base"][2] - pose[2])) < 0.1
 
 
 def test_expert_is_deterministic():
