@@ -33,8 +33,8 @@ STATE_LAYOUT = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest"
                 ("goal", 3), ("obj_start_polar", 2), ("goal_polar", 2))
 STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 28
 # joint_target is not in the paper's observation: the arm action moves the servo set-point, which
-# leads the measured joints by ~0.1 rad while the arm moves, so without it the expert's arm label
-# is not a function of what the policy sees (README, "Results").
+# leads the measured joints by ~0.1 rad while the arm moves: the expert's arm label depends on it.
+# (Adding it did not lower the learned arm's loss: README, "Results".)
 ACTION_DIM = 10                                      # 7 arm deltas, 2 base velocities, 1 grip
 ARM, BASE, GRIP = slice(0, 7), slice(7, 9), 9        # action layout
 GRIP_VALUES = (-1.0, 0.0, 1.0)                       # release, keep, grasp = grip classes 0, 1, 2
