@@ -14,8 +14,8 @@ by a cosine decay to 0, and the checkpoint with the best success on `seen` episo
 
 For --out ckpt/st.pt it writes ckpt/st.pt (the best checkpoint, or the final one when no success
 check runs), ckpt/st.last.pt (every epoch, for --resume) and ckpt/st.csv (the log). Load one for
-rollouts with model.load_policy("ckpt/st.pt"). The defaults train in 12.6 min on 2 CPU cores on
-1,000 demos of collect.py (967 steps on average, 32x32 depth; ~230 ms/iter, ~275 windows/s).
+rollouts with model.load_policy("ckpt/st.pt"). The defaults train in 12.6-14.8 min on 2 CPU cores
+on 1,000 demos of collect.py (~950 steps on average, 32x32 depth; 230-330 ms/iter).
 """
 import argparse
 import contextlib
