@@ -297,15 +297,18 @@ class Expert:
                 return
             yield self._arm_action(self.p["arm_target"], (np.clip(3 * along, -0.4, 0.4) / self.env.config.lin_speed, 0.0))
 
+    def _settle(self, pose):
+        """Start of pick and place: turn to the work pose's heading, then close in along it."""
+        yield from self._turn_to(pose[2])
+        yield from self._drive_to(pose)
+
     # --- manipulation skills ---
 
     def _pick(self, _):
         p = self.p
         ep = p["episode"]
         place = ep.object_places[ep.target]
-        pose = self._work_pose(place, p["obj_start"])
-        yield from self._turn_to(pose[2])
-        yield from self._drive_to(pose)
+        yield from self._settle(self._work_pose(place, p["obj_start"]))
         k = ep.target
         for attempt in range(3):
             obj = self.p["objects"][k]
@@ -322,9 +325,7 @@ class Expert:
     def _place(self, _):
         p = self.p
         ep = p["episode"]
-        pose = self._work_pose(ep.goal_place, p["goal"])
-        yield from self._turn_to(pose[2])
-        yield from self._drive_to(pose)
+        yield from self._settle(self._work_pose(ep.goal_place, p["goal"]))
         k = p["target"]
         if self.p["held"] == k:
             offset = self.p["ee"] - self.p["objects"][k]          # object hangs below the cup
