@@ -13,7 +13,8 @@ So numbers are comparable across runs and do not depend on the number of workers
     python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
-    python evaluate.py --policy ckpt/st.pt --split both --difficulty easy   # Sec. 5.5 analysis runs
+    python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \
+                       --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
 
 Table 1 (Sec. 5.3): success rate in % on All, Easy, Hard and Very Hard episodes. With one checkpoint
 the +- is over rollout seeds (--seeds), with several over training seeds. Table 2 (Sec. 5.4): on
@@ -74,6 +75,9 @@ class Config:
     """episodes per method written to --video"""
     log_every: float = 10.0
     """seconds between progress lines"""
+    plot: str = ""
+    """draw Fig. 3 (success and picked per architecture, context length, number of demos) to this
+    PNG; needs matplotlib; without --policy it redraws from the JSON at --out"""
 
 
 EVAL_SEED = 0                                   # fixed seed of the evaluation episode lists
@@ -142,7 +146,12 @@ def parse_method(spec, cfg):
     if len(variants) > 1:
         raise ValueError(f"{spec}: checkpoints of different variants {sorted(variants)} in one row")
     variant = variants.pop()
-    return {"name": f"{variant} ({spec})", "spec": spec, "variant": variant, "members": members}
+    trained = policy.train_config              # the last member's: training seeds share the rest
+    setting = {"variant": variant, "context": policy.cfg.context, "n_demos": trained.get("n_demos"),
+               "segments": trained.get("segments") or "", "epochs": trained.get("epochs"),
+               "init": bool(trained.get("init"))}
+    return {"name": f"{variant} ({spec})", "spec": spec, "variant": variant, "members": members,
+            "setting": setting}
 
 
 # --- one rollout ---
@@ -311,6 +320,69 @@ def markdown(results):
     return "\n".join(lines)
 
 
+# --- Fig. 3 ---
+
+FIG3 = (("variant", "architecture (Fig. 3a)"), ("context", "context length C (Fig. 3b)"),
+        ("n_demos", "demonstrations (Fig. 3c)"), ("segments", "partial demonstrations (Sec. 5.5)"))
+
+
+def fig3_panels(methods):
+    """Checkpoint methods -> [(key, title, methods)], one per Fig. 3 panel that has something to
+    compare: the reference run and the runs that differ from it in that one setting only. The
+    reference is the run that the most others differ from in exactly one setting."""
+    runs = [m for m in methods if m.get("setting")]
+    diff = lambda a, b: [k for k in a["setting"] if a["setting"][k] != b["setting"][k]]
+    if not runs:
+        return []
+    ref = max(runs, key=lambda m: sum(len(diff(m, o)) == 1 for o in runs))
+    panels = []
+    for key, title in FIG3:
+        members = [ref] + [m for m in runs if diff(m, ref) == [key]]
+        if isinstance(ref["setting"][key], int):
+            members.sort(key=lambda m: m["setting"][key])
+        if len(members) > 1:
+            panels.append((key, title, members))
+    return panels
+
+
+def pyplot():
+    try:
+        import matplotlib
+        matplotlib.use("Agg")                   # no display: draw to a file
+        import matplotlib.pyplot as plt
+    except ImportError as err:
+        raise ValueError("--plot needs matplotlib (pip install matplotlib); the tables need nothing") from err
+    return plt
+
+
+def plot_fig3(results, path):
+    """Fig. 3 as bars: a column per panel, success (top) and picked (bottom) per split, +- std."""
+    plt = pyplot()
+    panels = fig3_panels(results["methods"])
+    if not panels:
+        raise ValueError(f"--plot: no two checkpoints in {results['config']['out']} differ in just one of "
+                         f"{[k for k, _ in FIG3]}, so there is no panel to draw")
+    splits, width = results["splits"], 0.8 / len(results["splits"])
+    fig, axes = plt.subplots(2, len(panels), figsize=(4 * len(panels), 6), squeeze=False)
+    for col, (key, title, members) in enumerate(panels):
+        x = np.arange(len(members))
+        for row, (metric, label) in enumerate((("success_all", "success (%)"), ("picked", "picked (%)"))):
+            ax = axes[row][col]
+            for i, s in enumerate(splits):
+                stats = [m["results"][s]["no_perturb"][metric] for m in members]
+                ax.bar(x + (i - (len(splits) - 1) / 2) * width, [st["mean"] for st in stats], width,
+                       yerr=[st["std"] for st in stats], capsize=3, label=s)
+            ax.set_xticks(x, [str(m["setting"][key] or "whole") for m in members])
+            ax.set_ylabel(label)
+        axes[0][col].set_title(title)
+    axes[0][0].legend(title=results["config"]["difficulty"] or "all episodes")
+    fig.tight_layout()
+    tmp = path + ".tmp"
+    fig.savefig(tmp, format="png", dpi=120)
+    os.replace(tmp, path)                       # atomic: no half-written PNG
+    plt.close(fig)
+
+
 # --- video ---
 
 def write_png(path, image):
@@ -445,8 +517,17 @@ def parse_args(argv=None):
 if __name__ == "__main__":
     cfg = parse_args()
     try:
-        results = evaluate(cfg)
+        if cfg.plot:
+            pyplot()                            # fail now, not after an hour of rollouts
+        if cfg.plot and not cfg.policy:         # redraw from an earlier run
+            with open(cfg.out) as f:
+                results = json.load(f)
+        else:
+            results = evaluate(cfg)
+            print(results["markdown"])
+            print(f"wrote {cfg.out} and {os.path.splitext(cfg.out)[0]}.md")
+        if cfg.plot:
+            plot_fig3(results, cfg.plot)
+            print(f"wrote {cfg.plot}")
     except (ValueError, FileNotFoundError) as err:
         sys.exit(f"error: {err}")
-    print(results["markdown"])
-    print(f"wrote {cfg.out} and {os.path.splitext(cfg.out)[0]}.md")

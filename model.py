@@ -435,4 +435,7 @@ class Policy:
 def load_policy(path, device="cpu", batch=1):
     """Checkpoint written by train.py -> Policy with reset(), act(obs, reward) and act_batch."""
     ckpt = load_checkpoint(path, device)
-    return Policy(model_from_checkpoint(ckpt, device), ckpt["env_config"], ckpt["rtg_max"], device, batch)
+    policy = Policy(model_from_checkpoint(ckpt, device), ckpt["env_config"], ckpt["rtg_max"], device, batch)
+    # How it was trained (train.Config, demos used), for evaluate.py's grouping of the Fig. 3 runs.
+    policy.train_config = dict(ckpt.get("config", {}), n_demos=ckpt.get("n_demos"))
+    return policy

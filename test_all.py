@@ -466,6 +466,7 @@ def test_evaluate_checkpoints(checkpoints, tmp_path):
     assert all(r["steps"] <= 25 for r in res["rollouts"])                # the checkpoint's env config
     assert {r["failure"] for r in res["rollouts"]} <= {"timeout", "collision", "collision_accum"}
     assert 0 <= joined["skill_accuracy"]["mean"] <= 100
+    assert res["methods"][0]["setting"]["context"] == 4 and res["methods"][0]["setting"]["variant"] == "st"
     rate = evaluate.success_check(checkpoints[0], 2)
     assert isinstance(rate, float) and rate == 0.0                        # untrained: no success in 25 steps
 
@@ -489,6 +490,32 @@ def test_spread_over_training_or_rollout_seeds():
     units += [{"member": "b", "seed": 0, "x": 40.0}, {"member": "b", "seed": 1, "x": 40.0}]
     assert evaluate.spread(units, "x") == {"mean": 30.0, "std": 10.0}             # training seeds
     assert evaluate.spread(units + [{"member": "c", "seed": 0, "x": None}], "x") is None
+
+
+def test_fig3_panels_and_plot(tmp_path):
+    """Each Fig. 3 panel is the reference run plus the runs that differ from it in that setting only."""
+    def run_(name, **changes):
+        setting = dict(dict(variant="st", context=30, n_demos=1000, segments="", epochs=75, init=False), **changes)
+        stat = {"mean": float(len(name)), "std": 0.0}
+        return {"name": name, "setting": setting,
+                "results": {"unseen": {"no_perturb": {"success_all": stat, "picked": stat}}}}
+    methods = [run_("ctx60", context=60), run_("ref"), run_("ctx15", context=15), run_("n250", n_demos=250),
+               run_("lstm", variant="lstm"), run_("lstm15", variant="lstm", context=15), {"name": "expert:oracle"}]
+    panels = evaluate.fig3_panels(methods)
+    assert [(key, [m["name"] for m in members]) for key, _, members in panels] == [
+        ("variant", ["ref", "lstm"]), ("context", ["ctx15", "ref", "ctx60"]), ("n_demos", ["n250", "ref"])]
+    assert evaluate.fig3_panels([{"name": "expert:oracle"}]) == []
+    out = tmp_path / "fig3.json"
+    out.write_text(json.dumps({"config": {"out": str(out), "difficulty": "easy"}, "splits": ["unseen"],
+                               "methods": methods}))
+    p = run("evaluate.py", "--plot", tmp_path / "fig3.png", "--out", out, check=False)
+    try:
+        import matplotlib  # noqa: F401  (optional: CI does not install it)
+    except ImportError:
+        assert p.returncode != 0 and "--plot needs matplotlib" in p.stderr
+    else:
+        assert p.returncode == 0, p.stderr
+        assert (tmp_path / "fig3.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_help():
