@@ -762,9 +762,11 @@ def test_lr_schedule():
 def test_windows_and_padding(tmp_path):
     demos, meta = train.load_demos(write_demos(str(tmp_path / "d")))
     cfg = train.TrainConfig(context=8, batch_size=4)
-    w = train.epoch_windows(demos, cfg, epoch=0)
-    assert len(w) % 4 == 0 and np.array_equal(w, train.epoch_windows(demos, cfg, epoch=0))
-    batch = train.get_batch(demos, np.array([[0, 2], [1, 30]]), 8, "cpu")
+    lengths = [len(d["action"]) for d in demos]
+    w = train.epoch_windows(lengths, cfg, epoch=0)
+    assert len(w) % 4 == 0 and np.array_equal(w, train.epoch_windows(lengths, cfg, epoch=0))
+    flat, starts = train.flatten_demos(demos, "cpu")
+    batch = train.get_batch(flat, starts, np.array([[0, 2], [1, 30]]), 8)
     assert batch["depth"].shape == (2, 8, 1, 16, 16) and batch["depth"].max() <= 1
     assert batch["mask"][0].tolist() == [False] * 5 + [True] * 3 and batch["mask"][1].all()
     np.testing.assert_array_equal(batch["state"][1, -1].numpy(), demos[1]["state"][30])

@@ -11,6 +11,8 @@ by a cosine decay to 0, and the checkpoint with the best success on `seen` episo
     python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
     python train.py --data data/demos --out ckpt/part.pt --segments nav-pick,nav-place   # Sec. 5.5
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
+    python train.py --data data/demos --out ckpt/st.pt --batch-size 256 --coverage 4 --dropout 0.1 \
+        --epochs 254 --warmup-epochs 25          # the GPU budget of README "Results" (~10k iterations)
 
 For --out ckpt/st.pt it writes ckpt/st.pt (the best checkpoint, or the final one when no success
 check runs), ckpt/st.last.pt (every epoch, for --resume) and ckpt/st.csv (the log). Load one for
@@ -222,34 +224,44 @@ def load_demos(data_dir, max_demos=0):
     return [load_episode(f, size) for f in files], meta
 
 
-def epoch_windows(demos, cfg, epoch):
-    """Appendix A: an epoch draws demos_per_epoch demos; windows end at steps drawn uniformly from
-    all their steps, a whole number of batches of them. Same (seed, epoch) -> same windows on every
-    rank, which then takes its share of each batch. -> (n, 2) int array of (demo, end step)."""
+def epoch_windows(lengths, cfg, epoch):
+    """Appendix A: an epoch draws demos_per_epoch demos (of the given lengths); windows end at steps
+    drawn uniformly from all their steps, a whole number of batches of them. Same (seed, epoch) ->
+    same windows on every rank, which then takes its share of each batch. -> (n, 2) int array of
+    (demo, end step)."""
     rng = np.random.default_rng([cfg.seed, epoch])
-    chosen = rng.choice(len(demos), size=min(cfg.demos_per_epoch, len(demos)), replace=False)
-    lengths = [len(demos[i]["action"]) for i in chosen]
-    ends = np.concatenate([np.stack([np.full(T, i), np.arange(T)], 1) for i, T in zip(chosen, lengths)])
+    chosen = rng.choice(len(lengths), size=min(cfg.demos_per_epoch, len(lengths)), replace=False)
+    ends = np.concatenate([np.stack([np.full(lengths[i], i), np.arange(lengths[i])], 1) for i in chosen])
     B = cfg.batch_size
     n = max(B, int(round(cfg.coverage * len(ends) / cfg.context)) // B * B)
     return ends[rng.choice(len(ends), size=n, replace=n > len(ends))]
 
 
-def get_batch(demos, windows, C, device):
-    """Windows (B, 2) -> batch of (B, C, ...) tensors. A window that would start before step 0 is
-    left-padded; mask marks the real steps, and padding is left out of every loss."""
-    B, S = len(windows), demos[0]["depth"].shape[1]
-    keys = ("depth", "state", "action", "prev_action", "skill", "receptacle", "rtg")
-    arr = {k: np.zeros((B, C, *demos[0][k].shape[1:]), demos[0][k].dtype) for k in keys}
-    mask = np.zeros((B, C), bool)
-    for b, (i, e) in enumerate(windows):
-        s = max(0, e - C + 1)
-        for k in keys:
-            arr[k][b, C - (e + 1 - s):] = demos[i][k][s:e + 1]
-        mask[b, C - (e + 1 - s):] = True
-    batch = {k: torch.from_numpy(v).to(device, non_blocking=True) for k, v in arr.items()}
+BATCH_KEYS = ("depth", "state", "action", "prev_action", "skill", "receptacle", "rtg")
+
+
+def flatten_demos(demos, device):
+    """All demos end to end in one tensor per array, on the training device (a GPU holds ~1 GB of
+    depth per 1,000 demos), so that a batch is one gather, not a Python loop over windows.
+    -> (dict of (N_steps, ...) tensors, (n_demos,) index of each demo's first step)."""
+    lengths = np.array([len(d["action"]) for d in demos])
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    flat = {k: torch.from_numpy(np.concatenate([d[k] for d in demos])).to(device) for k in BATCH_KEYS}
+    return flat, torch.as_tensor(starts, device=device)
+
+
+def get_batch(flat, starts, windows, C):
+    """Windows (B, 2) of (demo, end step) -> batch of (B, C, ...) tensors. A window that would start
+    before step 0 is left-padded with zeros; mask marks the real steps, and padding is left out of
+    every loss."""
+    windows = torch.as_tensor(windows, device=starts.device)
+    t = windows[:, 1:] + torch.arange(1 - C, 1, device=starts.device)   # (B, C) steps of the demo
+    mask = t >= 0
+    idx = starts[windows[:, 0]][:, None] + t.clamp(min=0)               # (B, C) rows of flat
+    batch = {k: flat[k][idx] * mask.view(*mask.shape, *[1] * (flat[k].dim() - 1)) for k in BATCH_KEYS}
+    B, S = mask.shape[0], flat["depth"].shape[-1]
     batch["depth"] = batch["depth"].float().div_(255.0).view(B, C, 1, S, S)  # (B, T, 1, H, W) in [0, 1]
-    batch["mask"] = torch.from_numpy(mask).to(device)
+    batch["mask"] = mask
     return batch
 
 
@@ -324,9 +336,9 @@ def train(cfg):
     if device.type == "cuda":
         torch.cuda.set_device(device)
         torch.backends.cuda.matmul.allow_tf32 = True
-    else:
-        local_world = int(os.environ.get("LOCAL_WORLD_SIZE", 1))
-        torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // local_world))
+        torch.backends.cudnn.benchmark = True
+    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", 1))
+    torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // local_world))
     if not 0 <= cfg.action_dropout <= 1:
         raise ValueError(f"action_dropout must lie in [0, 1], got {cfg.action_dropout}")
     if cfg.batch_size % world:
@@ -345,8 +357,8 @@ def train(cfg):
     demos, meta = load_demos(cfg.data, cfg.max_demos)
     if cfg.segments:
         demos = cut_segments(demos, cfg.segments.split(","))
-    n_steps = sum(len(d["action"]) for d in demos)
-    log(f"loaded {len(demos)} {'pieces (' + cfg.segments + ')' if cfg.segments else 'demos'}, {n_steps} steps, "
+    lengths = [len(d["action"]) for d in demos]
+    log(f"loaded {len(demos)} {'pieces (' + cfg.segments + ')' if cfg.segments else 'demos'}, {sum(lengths)} steps, "
         f"depth {demos[0]['depth'].shape[1]}px from {cfg.data} in {time.time() - t0:.1f} s")
 
     # model
@@ -365,6 +377,9 @@ def train(cfg):
         log(f"resuming {last_path} at epoch {start_epoch}")
     net = model.SkillTransformer(margs)
     stats = data_stats(demos)
+    flat, starts = flatten_demos(demos, device)
+    n_demos = len(demos)
+    del demos  # the flat copy is all training needs
     for k in ("state_mean", "state_std", "rtg_scale"):
         getattr(net, k).copy_(torch.as_tensor(stats[k]))
     if ckpt is not None:
@@ -396,7 +411,7 @@ def train(cfg):
         return {"model": raw.state_dict(), "optimizer": opt.state_dict() if resumable else None,
                 "model_args": asdict(margs),
                 "config": asdict(cfg), "epoch": epoch, "iter_num": iter_num, "env_config": meta["env_config"],
-                "best_success": best_success, "rtg_max": stats["rtg_max"], "n_demos": len(demos),
+                "best_success": best_success, "rtg_max": stats["rtg_max"], "n_demos": n_demos,
                 "skills": list(env.SKILLS)}
 
     check = success_check_fn() if cfg.eval_every > 0 and master else None
@@ -410,10 +425,10 @@ def train(cfg):
     sums, n_sum, t_start, it_done = {}, 0, time.time(), 0
     t_int = time.time()
     for epoch in range(start_epoch, cfg.epochs):
-        windows = epoch_windows(demos, cfg, epoch)
+        windows = epoch_windows(lengths, cfg, epoch)
         iters = len(windows) // cfg.batch_size
         if epoch == start_epoch:
-            log(f"epoch = {min(cfg.demos_per_epoch, len(demos))} demos, {len(windows)} windows of "
+            log(f"epoch = {min(cfg.demos_per_epoch, n_demos)} demos, {len(windows)} windows of "
                 f"{cfg.context} steps, {iters} iterations of {cfg.batch_size} windows")
         raw.train()
         for it in range(iters):
@@ -421,7 +436,7 @@ def train(cfg):
             for g in opt.param_groups:
                 g["lr"] = lr
             mine = windows[it * cfg.batch_size + rank * B:it * cfg.batch_size + (rank + 1) * B]
-            batch = get_batch(demos, mine, cfg.context, device)
+            batch = get_batch(flat, starts, mine, cfg.context)
             if 0 < cfg.action_dropout < 1:
                 keep = torch.rand(batch["mask"].shape, device=device) >= cfg.action_dropout
                 batch["prev_action"] = batch["prev_action"] * keep[..., None]
