@@ -355,6 +355,7 @@ def train(cfg):
     # data
     t0 = time.time()
     demos, meta = load_demos(cfg.data, cfg.max_demos)
+    n_demos = len(demos)  # the dataset size (Fig. 3c), also when the demos are cut into pieces
     if cfg.segments:
         demos = cut_segments(demos, cfg.segments.split(","))
     lengths = [len(d["action"]) for d in demos]
@@ -378,7 +379,6 @@ def train(cfg):
     net = model.SkillTransformer(margs)
     stats = data_stats(demos)
     flat, starts = flatten_demos(demos, device)
-    n_demos = len(demos)
     del demos  # the flat copy is all training needs
     for k in ("state_mean", "state_std", "rtg_scale"):
         getattr(net, k).copy_(torch.as_tensor(stats[k]))
@@ -408,7 +408,8 @@ def train(cfg):
 
     def checkpoint(epoch, resumable=True):
         # The optimizer state (2/3 of the bytes) goes only into CKPT.last.pt, which --resume reads.
-        return {"model": raw.state_dict(), "optimizer": opt.state_dict() if resumable else None,
+        return {"model": {k: v.cpu() for k, v in raw.state_dict().items()},  # loads without a GPU
+                "optimizer": opt.state_dict() if resumable else None,
                 "model_args": asdict(margs),
                 "config": asdict(cfg), "epoch": epoch, "iter_num": iter_num, "env_config": meta["env_config"],
                 "best_success": best_success, "rtg_max": stats["rtg_max"], "n_demos": n_demos,
@@ -428,7 +429,7 @@ def train(cfg):
         windows = epoch_windows(lengths, cfg, epoch)
         iters = len(windows) // cfg.batch_size
         if epoch == start_epoch:
-            log(f"epoch = {min(cfg.demos_per_epoch, n_demos)} demos, {len(windows)} windows of "
+            log(f"epoch = {min(cfg.demos_per_epoch, len(lengths))} {'pieces' if cfg.segments else 'demos'}, {len(windows)} windows of "
                 f"{cfg.context} steps, {iters} iterations of {cfg.batch_size} windows")
         raw.train()
         for it in range(iters):
