@@ -429,7 +429,8 @@ def train(cfg):
         windows = epoch_windows(lengths, cfg, epoch)
         iters = len(windows) // cfg.batch_size
         if epoch == start_epoch:
-            log(f"epoch = {min(cfg.demos_per_epoch, len(lengths))} {'pieces' if cfg.segments else 'demos'}, {len(windows)} windows of "
+            unit = "pieces" if cfg.segments else "demos"
+            log(f"epoch = {min(cfg.demos_per_epoch, len(lengths))} {unit}, {len(windows)} windows of "
                 f"{cfg.context} steps, {iters} iterations of {cfg.batch_size} windows")
         raw.train()
         for it in range(iters):
