@@ -55,6 +55,10 @@ class Config:
     """dataset seed: selects the train episodes and the reset seeds"""
     noise: float = 0.0
     """DART noise scale injected into the executed actions (the stored action stays clean)"""
+    nav_noise: float = 0.0
+    """DART drift of the executed turn rate while following a path (expert.Expert's nav_noise)"""
+    jitter: float = 0.0
+    """DART: navigation to a pick or place ends up to this many rad off facing its point"""
     keep_failed: bool = False
     """also keep demonstrations in which the expert failed"""
     shard: str = "0/1"
@@ -75,7 +79,7 @@ FORMAT_VERSION = 1
 EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
 TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.\d+\.tmp$")   # ep_k.npz.<pid>.tmp
 # meta.json entries that must agree before new episodes are added to an existing directory
-MUST_MATCH = ("format", "env_config", "seed", "noise", "keep_failed", "plan")
+MUST_MATCH = ("format", "env_config", "seed", "noise", "nav_noise", "jitter", "keep_failed", "plan")
 
 
 def episode_path(out, k):
@@ -138,9 +142,9 @@ def load_episode(path):
 _worker_env = {}   # per process: the simulator, built once on the first job
 
 
-def record_episode(e, episode, seed, noise):
+def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0):
     """Run the oracle expert on one episode -> dict of arrays in the file format."""
-    x = expert.Expert(e, plan="oracle", seed=seed, noise=noise)
+    x = expert.Expert(e, plan="oracle", seed=seed, noise=noise, nav_noise=nav_noise, jitter=jitter)
     obs, info = e.reset(seed=seed, options={"episode": episode})
     x.reset()
     steps = {k: [] for k in STEP_ARRAYS}
@@ -163,12 +167,12 @@ def record_episode(e, episode, seed, noise):
 
 def collect_job(job):
     """Worker entry: record episode k to a temporary file -> (temporary path, success, steps)."""
-    k, episode, seed, noise, env_kwargs, out = job
+    k, episode, seed, noise, nav_noise, jitter, env_kwargs, out = job
     key = json.dumps(env_kwargs, sort_keys=True)
     if key not in _worker_env:
         _worker_env.clear()
         _worker_env[key] = env.RearrangeEnv(**env_kwargs)
-    data = record_episode(_worker_env[key], episode, seed, noise)
+    data = record_episode(_worker_env[key], episode, seed, noise, nav_noise, jitter)
     tmp = f"{episode_path(out, k)}.{os.getpid()}.tmp"   # per process: an orphaned worker of a killed
     with open(tmp, "wb") as f:                          # run cannot write into this run's file
         np.savez_compressed(f, **data)                  # (a file object: savez adds no suffix)
@@ -198,6 +202,8 @@ def make_meta(cfg, env_kwargs):
         "plan": "oracle",
         "seed": cfg.seed,
         "noise": cfg.noise,
+        "nav_noise": cfg.nav_noise,
+        "jitter": cfg.jitter,
         "keep_failed": cfg.keep_failed,
         "versions": {"python": platform.python_version(), "numpy": np.__version__,
                      "mujoco": mujoco.__version__},
@@ -316,7 +322,7 @@ def collect(cfg):
                     check_existing(cfg.out, k, have[k], episode, seed)
                     pending.append((k, None))
                     continue
-                job = (k, episode, seed, cfg.noise, env_kwargs, cfg.out)
+                job = (k, episode, seed, cfg.noise, cfg.nav_noise, cfg.jitter, env_kwargs, cfg.out)
                 pending.append((k, pool.apply_async(collect_job, (job,)) if pool else job))
             k, work = pending.popleft()
             if work is None:
@@ -406,7 +412,7 @@ if __name__ == "__main__":
             print_stats(cfg.stats)
         else:
             print(f"collecting {cfg.episodes} demonstrations into {cfg.out} "
-                  f"(shard {cfg.shard}, {cfg.workers} workers, seed {cfg.seed}, noise {cfg.noise})", flush=True)
+                  f"(shard {cfg.shard}, {cfg.workers} workers, seed {cfg.seed}, noise {cfg.noise}, nav noise {cfg.nav_noise}, jitter {cfg.jitter})", flush=True)
             r = collect(cfg)
             print(f"done: {r['kept']} demonstrations in {cfg.out}; ran {r['ran']} episodes "
                   f"({r['ran_success']} successful) in {r['seconds'] / 60:.1f} min", flush=True)

@@ -485,7 +485,7 @@ class RearrangeEnv:
     | depth           | (H, W, 1) | head camera depth / depth_max, 90 deg FoV, no hit = 1        | [0, 1]    |
     | joint           | (7,)      | arm joint angles, rad                                       | ARM_RANGE |
     | joint_target    | (7,)      | the arm servos' set-point, which the arm action moves, rad  | ARM_RANGE |
-    | is_holding      | (1,)      | 1 when any object is held                                   | {0, 1}    |
+    | is_holding      | (1,)      | 1 when the cup holds an object or a handle (Habitat's grasp) | {0, 1}    |
     | ee_rest         | (3,)      | end effector minus its rest position, base frame, m         | ~[-1, 1]  |
     | obj_start       | (3,)      | target's START position minus end effector, base frame, m   | room      |
     | goal            | (3,)      | goal minus end effector, base frame, m                      | room      |
@@ -799,7 +799,9 @@ class RearrangeEnv:
             "depth": depth,
             "joint": d.qpos[ids["arm_q"]].astype(np.float32),
             "joint_target": self._arm_target.astype(np.float32),
-            "is_holding": np.array([float(self._held >= 0)], np.float32),
+            # Habitat's IsHoldingSensor reads grasp_mgr.is_grasped, true for an object or a
+            # handle: without it a pull that lost the handle looks like one that holds it
+            "is_holding": np.array([float(self._held >= 0 or self._handle >= 0)], np.float32),
             "ee_rest": (rel[:, 0] - self._ee_rest).astype(np.float32),
             "obj_start": rel[:, 1].astype(np.float32),
             "goal": rel[:, 2].astype(np.float32),

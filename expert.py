@@ -22,10 +22,13 @@ from env import SKILL_IDS
 
 # --- controller constants ---
 
-NAV_INFLATE = 0.4           # m: planning clearance of the base centre (robot radius 0.3 + margin)
+NAV_CLEAR = 0.55            # m: preferred planning clearance of the base centre (robot radius 0.3 + 0.25)
+NAV_INFLATE = 0.4           # m: the least clearance, where NAV_CLEAR leaves no path
+NAV_DRIFT_DECAY = np.exp(-1 / 30)   # per step: the navigation noise drifts with a 1 s time constant
 LOOKAHEAD = 0.35            # m: pure-pursuit lookahead along the path
 NAV_TIMEOUT = 700           # steps per skill before it gives up
 STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to the front face, m
+REACH = {"surface": 0.6, "drawer": 0.58, "fridge": 0.6}       # base centre to the object or goal, m
 DOOR_TARGET = 1.6           # rad the expert swings the fridge door to (range 1.75)
 DOWN = np.array([0.0, 0.0, -1.0])
 
@@ -42,15 +45,20 @@ class Args:
     """seed of the episode set and of the env resets"""
     noise: float = 0.0
     """std of Gaussian noise added to executed arm and base actions (DART)"""
+    nav_noise: float = 0.0
+    """std of a slowly drifting noise added to the executed turn rate while following a path (DART)"""
+    jitter: float = 0.0
+    """pick and place start their reach up to this many rad off facing their point (DART)"""
 
 
 class Expert:
     """Scripted skills on the privileged state; act() returns the clean action and its skill id."""
 
-    def __init__(self, env_, plan="oracle", seed=0, noise=0.0):
+    def __init__(self, env_, plan="oracle", seed=0, noise=0.0, nav_noise=0.0, jitter=0.0):
         if plan not in ("oracle", "fixed"):
             raise ValueError(f"plan must be 'oracle' or 'fixed', got {plan!r}")
-        self.env, self.plan, self.noise = env_, plan, float(noise)
+        self.env, self.plan = env_, plan
+        self.noise, self.nav_noise, self.jitter = float(noise), float(nav_noise), float(jitter)
         self.rng = np.random.default_rng(seed)
         self.compute_time = 0.0
 
@@ -66,15 +74,20 @@ class Expert:
         ep = self.p["episode"]
         steps = []
         if self.plan == "oracle" and ep.goal_receptacle:
-            steps += [("navigate", (self._open_pose(ep.goal_place), True)), ("open", ep.goal_receptacle - 1)]
+            steps += [("navigate", (self._open_pose(ep.goal_place), None)), ("open", ep.goal_receptacle - 1)]
         if self.plan == "oracle" and ep.obj_receptacle:
-            steps += [("navigate", (self._open_pose(ep.object_places[ep.target]), True)), ("open", ep.obj_receptacle - 1)]
-        # navigation to a work pose stops at its position: pick and place turn to its heading
-        # themselves, so that a learned pick or place starting from a misaligned base has seen the fix
-        steps += [("navigate", (self._work_pose(ep.object_places[ep.target], ep.objects[ep.target]), False)),
-                  ("pick", None), ("navigate", (self._work_pose(ep.goal_place, ep.goal), False)), ("place", None)]
+            steps += [("navigate", (self._open_pose(ep.object_places[ep.target]), None)), ("open", ep.obj_receptacle - 1)]
+        # navigation to a pick or place ends facing its point at arm's reach (as M3's navigation
+        # skill ends facing its target); obj_start is where the target started: in a drawer,
+        # before the drawer was pulled out
+        obj, place = ep.objects[ep.target], ep.object_places[ep.target]
+        pulled = env.DRAWER_TRAVEL if place.startswith("drawer") else 0.0
+        steps += [("navigate", (self._work_pose(place, obj), (obj, self._reach(place) + pulled))), ("pick", None),
+                  ("navigate", (self._work_pose(ep.goal_place, ep.goal), (ep.goal, self._reach(ep.goal_place)))),
+                  ("place", None)]
         self.steps = steps
         self.gen, self.skill = None, None
+        self.drift, self.following = 0.0, False
 
     def act(self, obs, reward=0.0):
         """(action float32 (10,), skill id) for the current state; obs is unused: the expert is privileged."""
@@ -97,11 +110,21 @@ class Expert:
         return np.asarray(action, np.float32), self.skill
 
     def noisy(self, action):
-        """DART (Laskey et al. 2017): the env executes a perturbed action, the demo records the clean one."""
-        if self.noise <= 0:
+        """DART (Laskey et al. 2017): the env executes a perturbed action, the demo records the clean one.
+
+        Per-step noise on arm and base, and while following a path a drift of the turn rate: noise
+        that changes every 1/30 s averages out within centimetres, a drift carries the base tens of
+        centimetres off its path, as a learned navigation strays, and the demo shows the way back."""
+        if self.noise <= 0 and self.nav_noise <= 0:
             return action
         a = np.array(action, np.float32)
-        a[:9] = np.clip(a[:9] + self.rng.normal(0.0, self.noise, 9), -1, 1)
+        if self.noise > 0:
+            a[:9] += self.rng.normal(0.0, self.noise, 9)
+        if self.nav_noise > 0:
+            self.drift = NAV_DRIFT_DECAY * self.drift + np.sqrt(1 - NAV_DRIFT_DECAY ** 2) * self.rng.normal(0.0, self.nav_noise)
+            if self.following:
+                a[8] += self.drift
+        a[:9] = np.clip(a[:9], -1, 1)
         return a
 
     def _skill_id(self, kind, arg):
@@ -186,10 +209,10 @@ class Expert:
 
     # --- navigation: wavefront on the inflated occupancy grid, pure pursuit along the path ---
 
-    def _blocked(self):
-        """Occupancy for planning: furniture inflated by NAV_INFLATE, plus open drawers and doors."""
+    def _blocked(self, inflate):
+        """Occupancy for planning: furniture inflated by `inflate`, plus open drawers and doors."""
         p = self.p
-        grid = env.occupancy_grid(p["layout"], inflate=NAV_INFLATE)
+        grid = env.occupancy_grid(p["layout"], inflate=inflate)
         res = p["grid_res"]
         X, Y = np.meshgrid((np.arange(grid.shape[0]) + 0.5) * res, (np.arange(grid.shape[1]) + 0.5) * res, indexing="ij")
         for k, rec in enumerate(env.RECEPTACLES):
@@ -206,13 +229,23 @@ class Expert:
                 b = a + lat * f.size[1]
             ab = b - a
             t = np.clip(((X - a[0]) * ab[0] + (Y - a[1]) * ab[1]) / (ab @ ab), 0, 1)
-            grid |= np.hypot(X - a[0] - t * ab[0], Y - a[1] - t * ab[1]) < NAV_INFLATE
+            grid |= np.hypot(X - a[0] - t * ab[0], Y - a[1] - t * ab[1]) < inflate
         return grid
 
     def _plan_path(self, start, goal):
-        """Shortest 8-connected grid path by a numpy wavefront from the goal, then shortcut."""
+        """A path with NAV_CLEAR of clearance, else with NAV_INFLATE, else straight for the goal. The
+        wider berth leaves a learned navigation room for error around obstacles."""
+        for inflate in (NAV_CLEAR, NAV_INFLATE):
+            path = self._grid_path(start, goal, inflate)
+            if path is not None:
+                return path
+        return [np.asarray(goal[:2])]
+
+    def _grid_path(self, start, goal, inflate):
+        """Shortest 8-connected grid path by a numpy wavefront from the goal, then shortcut; None if
+        there is none."""
         res = self.p["grid_res"]
-        blocked = self._blocked()
+        blocked = self._blocked(inflate)
         cell = lambda xy: tuple(np.clip((np.asarray(xy) / res).astype(int), 0, np.array(blocked.shape) - 1))
         s, g = cell(start[:2]), cell(goal[:2])
         free, static_free = ~blocked, ~self.p["occupancy"]
@@ -232,7 +265,7 @@ class Expert:
             front = nb & free & np.isinf(dist)
             dist[front] = k
         if np.isinf(dist[s]):
-            return [np.asarray(goal[:2])]        # no path: head straight for the goal
+            return None
         path, c = [s], s
         while c != g:                            # descend the wavefront
             i, j = c
@@ -259,7 +292,7 @@ class Expert:
         return bool(free[ij[:, 0], ij[:, 1]].all())
 
     def _navigate(self, arg):
-        pose, align = arg                        # align: end with the turn to the pose's heading
+        pose, face = arg     # face: (point, reach) to end facing, else the turn to the pose's heading
         p = self.p
         path = self._plan_path(p["base"][:2], pose)
         cfg = self.env.config
@@ -270,14 +303,16 @@ class Expert:
                 path.pop(0)
             goal_dist = np.linalg.norm(path[-1] - pos)
             if len(path) == 1 and goal_dist < 0.04:
-                if align:
-                    yield from self._turn_to(pose[2])
+                self.following = False
+                yield from (self._turn_to(pose[2]) if face is None else self._settle(*face))
                 return
             tgt = path[0]
             err = _wrap(np.arctan2(tgt[1] - y, tgt[0] - x) - yaw)
             w = np.clip(4.0 * err / cfg.ang_speed, -1, 1)
             v = 0.0 if abs(err) > 0.5 else np.clip(2.0 * goal_dist, 0.1, 1.0) * np.cos(err)
+            self.following = True               # the drift of DART acts on the path following alone
             yield self._arm_action(env.ARM_REST, (v, w))
+        self.following = False
 
     def _turn_to(self, yaw_des, timeout=120):
         """Turn in place to the heading yaw_des, the arm folded."""
@@ -297,10 +332,26 @@ class Expert:
                 return
             yield self._arm_action(self.p["arm_target"], (np.clip(3 * along, -0.4, 0.4) / self.env.config.lin_speed, 0.0))
 
-    def _settle(self, pose):
-        """Start of pick and place: turn to the work pose's heading, then close in along it."""
-        yield from self._turn_to(pose[2])
-        yield from self._drive_to(pose)
+    def _reach(self, place):
+        return REACH["drawer" if place.startswith("drawer") else self._furniture(place).kind]
+
+    def _settle(self, point, reach):
+        """End of a navigation to a pick or place: face the point, then drive along the heading
+        until it is `reach` away. Both read what the policy observes (obj_start_polar, goal_polar),
+        so a learned navigation that stopped off the work pose finishes the same way. With jitter
+        (DART) it stops up to `jitter` rad off facing and 0.4 `jitter` m off the distance: a learned
+        navigation stops near, not at, its mark, and the arm's reach must have been shown from there."""
+        yaw_off, reach_off = self.rng.uniform(-1, 1, 2) * [self.jitter, 0.4 * self.jitter] if self.jitter > 0 else (0, 0)
+        for _ in range(120):
+            x, y, yaw = self.p["base"]
+            to = np.asarray(point[:2]) - [x, y]
+            err = _wrap(np.arctan2(to[1], to[0]) + yaw_off - yaw)
+            along = np.linalg.norm(to) - reach - reach_off
+            if abs(err) < 0.04 and abs(along) < 0.02:
+                return
+            w = np.clip(3.0 * err / self.env.config.ang_speed, -0.6, 0.6)
+            v = 0.0 if abs(err) > 0.3 else np.clip(3 * along, -0.4, 0.4) / self.env.config.lin_speed
+            yield self._arm_action(env.ARM_REST, (v, w))
 
     # --- manipulation skills ---
 
@@ -308,7 +359,6 @@ class Expert:
         p = self.p
         ep = p["episode"]
         place = ep.object_places[ep.target]
-        yield from self._settle(self._work_pose(place, p["obj_start"]))
         k = ep.target
         for attempt in range(3):
             obj = self.p["objects"][k]
@@ -325,7 +375,6 @@ class Expert:
     def _place(self, _):
         p = self.p
         ep = p["episode"]
-        yield from self._settle(self._work_pose(ep.goal_place, p["goal"]))
         k = p["target"]
         if self.p["held"] == k:
             offset = self.p["ee"] - self.p["objects"][k]          # object hangs below the cup
@@ -363,11 +412,14 @@ class Expert:
         into = np.array([-n[0], -n[1], 0.0])
         handle = self.p["handles"][k]
         out = np.array([*n, 0.0])
-        yield from self._path_arm([handle + out * 0.15, handle + out * 0.05, handle + out * 0.02], into)
-        for _ in range(3):
-            yield self._arm_action(self.p["arm_target"], grip=1.0)
+        yield from self._path_arm([handle + out * 0.3, handle + out * 0.15, handle + out * 0.05], into)   # clear of the front first
+        # the last 6 cm with the suction on, aiming 1 cm past the handle's axis: the cup takes the
+        # handle on the way in, so a learned reach that falls a few cm short still takes it
+        q = self._ik(handle - out * 0.01, into)
+        for _ in range(30):
             if self.p["handle"] == k:
                 break
+            yield self._arm_action(q, grip=1.0)
         if self.p["handle"] == k:
             if rec == "fridge":
                 yield from self._swing_door(k, f)
@@ -392,14 +444,18 @@ class Expert:
         yield from self._rest()
 
     def _swing_door(self, k, f):
-        """Follow the handle's arc around the hinge with the arm, the cup square to the door."""
+        """Follow the grasp point's arc around the hinge with the arm, the cup square to the door.
+
+        The arc starts where the cup took the handle (the suction's anchor), which with the suction
+        on during the approach can be a few cm off the handle's axis."""
         n, lat, face = self._frame(f)
         hinge = face + n * 0.015 - lat * f.size[1] / 2
-        h0 = self.p["handles"][k]
-        rel = h0[:2] - hinge                      # handle in the (n, lat) frame at angle 0
-        r_n, r_l = rel @ n, rel @ lat
+        h0 = self.p["ee"]
+        th0 = self.p["open_fraction"][k] * env.DOOR_RANGE
+        a, b = (h0[:2] - hinge) @ n, (h0[:2] - hinge) @ lat
+        r_n, r_l = np.cos(th0) * a - np.sin(th0) * b, np.sin(th0) * a + np.cos(th0) * b   # at angle 0
         q = self.p["arm"]
-        for th in np.arange(0.1, DOOR_TARGET + 1e-6, 0.1):
+        for th in np.arange(th0 + 0.1, DOOR_TARGET + 1e-6, 0.1):
             c, s = np.cos(th), np.sin(th)           # the door turns from lat toward n
             hxy = hinge + n * (r_n * c + r_l * s) + lat * (-r_n * s + r_l * c)
             into = -np.array([*(n * c - lat * s), 0.0])
@@ -417,7 +473,7 @@ def _wrap(a):
 
 def run(args):
     e = env.RearrangeEnv()
-    x = Expert(e, plan=args.plan, seed=args.seed, noise=args.noise)
+    x = Expert(e, plan=args.plan, seed=args.seed, noise=args.noise, nav_noise=args.nav_noise, jitter=args.jitter)
     eps = env.make_episodes(args.split, args.episodes, seed=args.seed)
     by_diff = collections.defaultdict(list)
     failures = collections.Counter()
@@ -459,7 +515,8 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     docs = env.field_docs(Args)
     for f in dataclasses.fields(Args):
-        p.add_argument(f"--{f.name}", type=type(f.default), default=f.default, help=docs.get(f.name))
+        names = [f"--{f.name.replace('_', '-')}"] + ([f"--{f.name}"] if "_" in f.name else [])
+        p.add_argument(*names, dest=f.name, type=type(f.default), default=f.default, help=docs.get(f.name))
     args = Args(**vars(p.parse_args()))
     if args.split not in env.SPLITS or args.plan not in ("oracle", "fixed"):
         p.error(f"--split must be one of {tuple(env.SPLITS)} and --plan oracle or fixed, got {args.split!r}, {args.plan!r}")

@@ -210,23 +210,42 @@ def test_fixed_plan_fails_closed_receptacle_and_labels_follow_plan():
     assert order == [env.SKILL_IDS[s] for s in ("navigate", "pick", "navigate", "place")]
 
 
-def test_expert_pick_first_turns_a_misaligned_base_to_its_work_pose():
+def test_navigation_to_a_pick_ends_facing_the_object_at_reach():
     ep = _first("easy", lambda ep: True)
     e = env.RearrangeEnv(depth_size=8)
     obs, _ = e.reset(seed=0, options={"episode": ep})
     x = expert.Expert(e, plan="oracle")
     x.reset()
-    pose = x._work_pose(ep.object_places[ep.target], ep.objects[ep.target])
-    e.data.qpos[e.ids["base_q"]] = [pose[0], pose[1], pose[2] + 0.4]   # a learned nav's typical error
+    pose, face = x.steps[0][1]
+    n = np.array([np.cos(pose[2]), np.sin(pose[2])])
+    aside = np.array(pose[:2]) + 0.25 * np.array([-n[1], n[0]])      # a learned nav's typical error
+    e.data.qpos[e.ids["base_q"]] = [*aside, pose[2] + 0.5]
     mujoco.mj_forward(e.model, e.data)
-    x.steps = [("pick", None)]
-    for t in range(60):
+    x.steps = [("navigate", (pose, face)), ("pick", None)]
+    skills = []
+    while True:
         action, skill = x.act(obs)
-        assert skill == env.SKILL_IDS["pick"]
-        if t == 0:
-            assert action[8] < 0 and not action[env.ARM].any()       # turns back, arm still folded
+        if skill != env.SKILL_IDS["navigate"]:
+            break
+        skills.append(skill)
         obs, *_ = e.step(action)
-    assert abs(expert._wrap(e.privileged()["base"][2] - pose[2])) < 0.1
+    dist, angle = obs["obj_start_polar"]
+    assert len(skills) < 200 and abs(angle) < 0.05 and abs(dist - face[1]) < 0.03
+    assert not action[7:9].any()                                     # the pick starts standing still
+
+
+def test_is_holding_covers_a_grasped_handle():
+    ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
+    e = env.RearrangeEnv(depth_size=8)
+    obs, _ = e.reset(seed=0, options={"episode": ep})
+    x = expert.Expert(e, plan="oracle")
+    x.reset()
+    for _ in range(600):
+        action, skill = x.act(obs)
+        obs, _, _, _, info = e.step(action)
+        if e.privileged()["handle"] >= 0:
+            break
+    assert e.privileged()["handle"] >= 0 and obs["is_holding"][0] == 1.0 and not info["holding"]
 
 
 def test_expert_is_deterministic():
