@@ -3,9 +3,11 @@
 Runs the privileged oracle expert of `expert.py` (our stand-in for the paper's M3 (Oracle)
 data-generating policy, Appendix C.1) on `train` episodes in parallel worker processes and records,
 per step, what the paper records: observations, actions, rewards and the executing skill. The
-expert executes DART-noised actions (`--noise`) but the clean action is stored as the label.
+expert executes DART-noised actions (`--noise` per step, `--nav-noise` a drifting turn rate,
+`--jitter` navigation that ends off its mark) but the clean action is stored as the label.
 
     python collect.py --episodes 1000 --out data/demos --workers 2 --seed 0
+    python collect.py --episodes 1000 --out data/v3 --noise 0.1 --nav-noise 0.2 --jitter 0.2
     python collect.py --episodes 1000 --out data/demos --shard 0/2      # machine A
     python collect.py --episodes 1000 --out data/demos --shard 1/2      # machine B: same DIR layout
     python collect.py --stats data/demos
