@@ -48,7 +48,7 @@ class Args:
     nav_noise: float = 0.0
     """std of a slowly drifting noise added to the executed turn rate while following a path (DART)"""
     jitter: float = 0.0
-    """pick and place start their reach up to this many rad off facing their point (DART)"""
+    """navigation to a pick or place ends up to this many rad off facing its point (DART)"""
 
 
 class Expert:
@@ -337,8 +337,8 @@ class Expert:
 
     def _settle(self, point, reach):
         """End of a navigation to a pick or place: face the point, then drive along the heading
-        until it is `reach` away. Both read what the policy observes (obj_start_polar, goal_polar),
-        so a learned navigation that stopped off the work pose finishes the same way. With jitter
+        until it is `reach` away. Both are functions of what the policy observes (obj_start_polar,
+        goal_polar), so a learned navigation that stopped off the work pose finishes the same way. With jitter
         (DART) it stops up to `jitter` rad off facing and 0.4 `jitter` m off the distance: a learned
         navigation stops near, not at, its mark, and the arm's reach must have been shown from there."""
         yaw_off, reach_off = self.rng.uniform(-1, 1, 2) * [self.jitter, 0.4 * self.jitter] if self.jitter > 0 else (0, 0)
@@ -515,8 +515,7 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     docs = env.field_docs(Args)
     for f in dataclasses.fields(Args):
-        names = [f"--{f.name.replace('_', '-')}"] + ([f"--{f.name}"] if "_" in f.name else [])
-        p.add_argument(*names, dest=f.name, type=type(f.default), default=f.default, help=docs.get(f.name))
+        p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default, help=docs.get(f.name))
     args = Args(**vars(p.parse_args()))
     if args.split not in env.SPLITS or args.plan not in ("oracle", "fixed"):
         p.error(f"--split must be one of {tuple(env.SPLITS)} and --plan oracle or fixed, got {args.split!r}, {args.plan!r}")
