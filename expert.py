@@ -30,6 +30,7 @@ NAV_TIMEOUT = 700           # steps per skill before it gives up
 STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to the front face, m
 REACH = {"surface": 0.6, "drawer": 0.58, "fridge": 0.6}       # base centre to the object or goal, m
 DOOR_TARGET = 1.6           # rad the expert swings the fridge door to (range 1.75)
+ARM_EASE = 3                # steps: the arm closes 1/ARM_EASE of its error per step near its target
 DOWN = np.array([0.0, 0.0, -1.0])
 
 
@@ -159,8 +160,11 @@ class Expert:
         return self.p["poses"]["fridge_door" if place == "fridge" else "cabinet"]
 
     def _arm_action(self, q_des, base=(0.0, 0.0), grip=0.0):
-        """Joint-delta action that moves the arm's target toward q_des at the env's max rate."""
-        delta = (q_des - self.p["arm_target"]) / self.env.config.arm_delta
+        """Joint-delta action that moves the arm's target toward q_des: at the env's max rate while
+        far, then proportionally (1/ARM_EASE of the error per step), so that the label is a smooth
+        function of the observed joint_target: a max-rate label flips from +1 to -1 within one
+        arm_delta (0.05 rad), which a learned arm smooths over and overshoots by tenths of a rad."""
+        delta = (q_des - self.p["arm_target"]) / (ARM_EASE * self.env.config.arm_delta)
         return np.array([*np.clip(delta, -1, 1), *base, grip])
 
     def _ik(self, target, axis=None, base=None, q0=None, iters=80):

@@ -234,6 +234,24 @@ def test_navigation_to_a_pick_ends_facing_the_object_at_reach():
     assert not action[7:9].any()                                     # the pick starts standing still
 
 
+def test_expert_arm_eases_into_its_target():
+    e = env.RearrangeEnv(depth_size=8)
+    obs, _ = e.reset(seed=0, options={"episode": _first("easy", lambda ep: True)})
+    x = expert.Expert(e, plan="oracle")
+    x.reset()
+    x.act(obs)                                                       # reads the privileged state
+    step = expert.ARM_EASE * e.config.arm_delta
+    q_des = x.p["arm_target"] + [-0.5 * step, 3 * step, 0, 0, 0, 0, 0]
+    a = x._arm_action(q_des)
+    assert np.allclose(a[:2], [-0.5, 1.0]) and not a[2:].any()       # proportional near, max rate far
+    errors = []
+    for _ in range(30):                                              # the servo target never overshoots
+        obs, *_ = e.step(x._arm_action(q_des))
+        x.p = e.privileged()
+        errors.append(q_des[1] - x.p["arm_target"][1])
+    assert all(-1e-9 < b <= a for a, b in zip(errors, errors[1:])) and errors[-1] < 0.003
+
+
 def test_is_holding_covers_a_grasped_handle():
     ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
     e = env.RearrangeEnv(depth_size=8)
