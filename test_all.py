@@ -249,7 +249,7 @@ def test_expert_arm_eases_into_its_target():
         obs, *_ = e.step(x._arm_action(q_des))
         x.p = e.privileged()
         errors.append(q_des[1] - x.p["arm_target"][1])
-    assert all(-1e-9 < b <= a for a, b in zip(errors, errors[1:])) and errors[-1] < 0.003
+    assert all(-1e-9 < later <= earlier for earlier, later in zip(errors, errors[1:])) and errors[-1] < 0.003
 
 
 def test_is_holding_covers_a_grasped_handle():
