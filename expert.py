@@ -31,6 +31,7 @@ STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to 
 REACH = {"surface": 0.6, "drawer": 0.58, "fridge": 0.6}       # base centre to the object or goal, m
 DOOR_TARGET = 1.6           # rad the expert swings the fridge door to (range 1.75)
 ARM_EASE = 3                # steps: the arm closes 1/ARM_EASE of its error per step near its target
+REST_TOL = 0.2              # rad: a manipulation skill ends this near the folded pose (see _rest)
 DOWN = np.array([0.0, 0.0, -1.0])
 
 
@@ -209,7 +210,11 @@ class Expert:
             yield from self._move_arm(q, tol, timeout)
 
     def _rest(self):
-        yield from self._move_arm(env.ARM_REST, tol=0.05, timeout=80)
+        """Fold the arm at the end of a manipulation skill, which ends once the arm is within
+        REST_TOL of the folded pose; navigation's arm label (ARM_REST) finishes the fold. A held
+        object stops the fold 0.12-0.14 rad short, so with a fine tolerance every pick ended on
+        the timeout, a moment the policy cannot observe, and learned picks often never ended."""
+        yield from self._move_arm(env.ARM_REST, tol=REST_TOL, timeout=80)
 
     # --- navigation: wavefront on the inflated occupancy grid, pure pursuit along the path ---
 

@@ -252,6 +252,28 @@ def test_expert_arm_eases_into_its_target():
     assert all(-1e-9 < later <= earlier for earlier, later in zip(errors, errors[1:])) and errors[-1] < 0.003
 
 
+def test_manipulation_ends_as_the_arm_nears_its_fold_not_on_a_timer():
+    """A held object keeps the folded arm ~0.13 rad off ARM_REST: a skill that waited for a finer
+    fold ended on its timeout, a moment the policy cannot observe, and learned picks often never ended."""
+    ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
+    e = env.RearrangeEnv(depth_size=8)
+    obs, _ = e.reset(seed=0, options={"episode": ep})
+    x = expert.Expert(e, plan="oracle")
+    x.reset()
+    ends, prev, done = [], None, False
+    while not done:
+        action, skill = x.act(obs)
+        if prev in (env.SKILL_IDS["open_drawer"], env.SKILL_IDS["pick"]) and skill != prev:
+            p = e.privileged()
+            ends.append((env.SKILLS[prev], np.abs(p["arm"] - env.ARM_REST).max(), np.abs(p["arm_target"] - env.ARM_REST).max()))
+        prev = skill
+        obs, _, term, trunc, _ = e.step(action)
+        done = term or trunc
+    assert [name for name, *_ in ends] == ["open_drawer", "pick"]
+    for name, err, target_err in ends:      # ended within the tolerance, the set-point still on its way
+        assert err < expert.REST_TOL and target_err > 0.01, (name, err, target_err)
+
+
 def test_is_holding_covers_a_grasped_handle():
     ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
     e = env.RearrangeEnv(depth_size=8)
