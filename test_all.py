@@ -297,6 +297,27 @@ def test_pick_label_is_a_function_of_the_state_not_of_the_steps_so_far():
     assert len(gaps) >= 3 and max(gaps) < 1e-6, gaps
 
 
+def test_pick_grasps_over_the_last_cm_of_its_reach():
+    """The grasp label is the suction on within GRASP_ZONE of the object, over several steps, not
+    one step at the end of the reach (which learned picks never fired: README)."""
+    ep = _first("easy", lambda ep: True)
+    e = env.RearrangeEnv(depth_size=8)
+    obs, _ = e.reset(seed=0, options={"episode": ep})
+    x = expert.Expert(e, plan="oracle")
+    x.reset()
+    grasps = []
+    while e.privileged()["held"] < 0 and len(grasps) < 50:
+        action, skill = x.act(obs)
+        p = e.privileged()
+        if action[9] > 0:
+            top = p["objects"][p["target"]] + [0, 0, env.OBJ_HALF]
+            grasps.append((skill, np.linalg.norm(p["ee"] - top)))
+        obs, *_ = e.step(action)
+    assert e.privileged()["held"] == e.privileged()["target"]
+    assert len(grasps) >= 3 and all(s == env.SKILL_IDS["pick"] for s, _ in grasps), grasps
+    assert max(d for _, d in grasps) < expert.GRASP_ZONE + 0.01, grasps
+
+
 def test_is_holding_covers_a_grasped_handle():
     ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
     e = env.RearrangeEnv(depth_size=8)
