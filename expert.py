@@ -412,12 +412,13 @@ class Expert:
         approach ends once it has taken effect: the suction takes an object up to 3 cm away
         (env.GRASP_DIST), so a learned reach that stops a few cm short still grasps, and the grip
         label is a function of the observed distance, not one step at the end of the reach (with
-        one grasp step, learned picks came within 2-7 cm of the object and never grasped)."""
+        one grasp step, learned picks came within 2-7 cm of the object and never grasped: README)."""
         over_surface = self._furniture(place).kind == "surface"
         for _ in range(timeout):
             ee, pt = self.p["ee"], np.asarray(point(), float)
             err = pt - ee
-            if np.linalg.norm(err) < tol or (self.p["held"] >= 0) == (grip > 0):
+            dist = np.linalg.norm(err)
+            if dist < tol or (self.p["held"] >= 0) == (grip > 0):   # there, or the grip took effect
                 return
             e_xy = np.linalg.norm(err[:2])
             aim = pt + [0, 0, min(FUNNEL_HEIGHT, FUNNEL_SLOPE * e_xy)]
@@ -425,8 +426,7 @@ class Expert:
             # of a counter higher than the folded cup: first raise the cup in place
             if over_surface and e_xy > 0.15 and ee[2] < pt[2] + FUNNEL_HEIGHT - 0.03:
                 aim = np.array([*ee[:2], pt[2] + FUNNEL_HEIGHT])
-            near = np.linalg.norm(err) < zone
-            yield self._arm_action(self._ik(aim, DOWN, q0=self.p["arm"], iters=30), grip=grip if near else 0.0)
+            yield self._arm_action(self._ik(aim, DOWN, q0=self.p["arm"], iters=30), grip=grip if dist < zone else 0.0)
 
     def _retract(self):
         """Pull the end effector out of a drawer or the fridge before folding the arm."""
