@@ -34,9 +34,9 @@ ARM_EASE = 3                # steps: the arm closes 1/ARM_EASE of its error per 
 REST_TOL = 0.2              # rad: a manipulation skill ends this near the folded pose (see _rest)
 FUNNEL_HEIGHT = 0.15        # m: pick and place approach their point from this high above it (_approach)
 FUNNEL_SLOPE = 2.0          # the aim is this many times the horizontal error above the point
-PICK_TOL = 0.015            # m: the cup grasps once this near the top of the object
-PLACE_TOL = 0.02            # m: ... and releases once this near the drop point
-GRASP_ZONE = 0.1           # m: the suction is on for the last 10 cm of the pick's approach
+PICK_TOL = 0.015            # m: the pick's approach ends this near the top of the object (if not yet held)
+PLACE_TOL = 0.02            # m: ... and the place's this near the drop point
+GRASP_ZONE = 0.1            # m: the suction is on for the last 10 cm of the pick's approach
 RELEASE_ZONE = 0.04         # m: ... and off for the last 4 cm of the place's (the object drops at most 8 cm)
 DOWN = np.array([0.0, 0.0, -1.0])
 
