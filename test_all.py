@@ -210,12 +210,17 @@ def test_fixed_plan_fails_closed_receptacle_and_labels_follow_plan():
     assert order == [env.SKILL_IDS[s] for s in ("navigate", "pick", "navigate", "place")]
 
 
-def test_navigation_to_a_pick_ends_facing_the_object_at_reach():
-    ep = _first("easy", lambda ep: True)
+def _oracle_on_first_easy():
+    """(env, first obs, reset oracle expert) on the first easy train episode."""
     e = env.RearrangeEnv(depth_size=8)
-    obs, _ = e.reset(seed=0, options={"episode": ep})
+    obs, _ = e.reset(seed=0, options={"episode": _first("easy", lambda ep: True)})
     x = expert.Expert(e, plan="oracle")
     x.reset()
+    return e, obs, x
+
+
+def test_navigation_to_a_pick_ends_facing_the_object_at_reach():
+    e, obs, x = _oracle_on_first_easy()
     pose, face = x.steps[0][1]
     n = np.array([np.cos(pose[2]), np.sin(pose[2])])
     aside = np.array(pose[:2]) + 0.25 * np.array([-n[1], n[0]])      # a learned nav's typical error
@@ -278,11 +283,7 @@ def test_pick_label_is_a_function_of_the_state_not_of_the_steps_so_far():
     """A learned pick sees the state, not the expert's progress: an expert that takes over midway
     through the reach gives the label the running one gives. (With fixed waypoints the labels of
     the two differed by 1-2 in some joint: the newcomer restarted at the first waypoint.)"""
-    ep = _first("easy", lambda ep: True)
-    e = env.RearrangeEnv(depth_size=8)
-    obs, _ = e.reset(seed=0, options={"episode": ep})
-    x = expert.Expert(e, plan="oracle")
-    x.reset()
+    e, obs, x = _oracle_on_first_easy()
     n, gaps = 0, []
     while e.privileged()["held"] < 0 and n < 100:
         action, skill = x.act(obs)
@@ -300,11 +301,7 @@ def test_pick_label_is_a_function_of_the_state_not_of_the_steps_so_far():
 def test_pick_grasps_over_the_last_cm_of_its_reach():
     """The grasp label is the suction on within GRASP_ZONE of the object, over several steps, not
     one step at the end of the reach (which learned picks never fired: README)."""
-    ep = _first("easy", lambda ep: True)
-    e = env.RearrangeEnv(depth_size=8)
-    obs, _ = e.reset(seed=0, options={"episode": ep})
-    x = expert.Expert(e, plan="oracle")
-    x.reset()
+    e, obs, x = _oracle_on_first_easy()
     grasps = []
     while e.privileged()["held"] < 0 and len(grasps) < 50:
         action, skill = x.act(obs)
