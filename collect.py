@@ -5,11 +5,15 @@ data-generating policy, Appendix C.1) on `train` episodes in parallel worker pro
 per step, what the paper records: observations, actions, rewards and the executing skill. The
 expert executes DART-noised actions (`--noise` per step, `--nav-noise` a drifting turn rate,
 `--jitter` navigation that ends off its mark) but the clean action is stored as the label.
+With `--policy CKPT` (DAgger, Ross et al. 2011) a trained policy drives the first `--dagger-steps`
+steps of every pick and place reach, and the label is still the expert's action in the state the
+policy led to: the expert's reach is closed loop (expert.Expert._approach), so it has a label there.
 
     python collect.py --episodes 1000 --out data/demos --workers 2 --seed 0
     python collect.py --episodes 1000 --out data/v3 --noise 0.1 --nav-noise 0.2 --jitter 0.2
     python collect.py --episodes 1000 --out data/demos --shard 0/2      # machine A
     python collect.py --episodes 1000 --out data/demos --shard 1/2      # machine B: same DIR layout
+    python collect.py --episodes 300 --out data/v7d --seed 1 --policy ckpt/v7_s0.pt   # DAgger
     python collect.py --stats data/demos
 
 Determinism: episode index k always runs `env.make_episodes("train", ..., seed=S)[k]` with a reset
@@ -40,9 +44,11 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+import torch
 
 import env
 import expert
+import model
 
 
 @dataclass
@@ -61,6 +67,10 @@ class Config:
     """DART drift of the executed turn rate while following a path (expert.Expert's nav_noise)"""
     jitter: float = 0.0
     """DART: navigation to a pick or place ends up to this many rad off facing its point"""
+    policy: str = ""
+    """DAgger: this train.py checkpoint drives the first dagger_steps steps of each pick and place reach"""
+    dagger_steps: int = 60
+    """steps of each reach the --policy drives before the expert takes over (its labels throughout)"""
     keep_failed: bool = False
     """also keep demonstrations in which the expert failed"""
     shard: str = "0/1"
@@ -81,7 +91,8 @@ FORMAT_VERSION = 1
 EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
 TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.\d+\.tmp$")   # ep_k.npz.<pid>.tmp
 # meta.json entries that must agree before new episodes are added to an existing directory
-MUST_MATCH = ("format", "env_config", "seed", "noise", "nav_noise", "jitter", "keep_failed", "plan")
+MUST_MATCH = ("format", "env_config", "seed", "noise", "nav_noise", "jitter", "keep_failed", "plan",
+              "policy", "dagger_steps")
 
 
 def episode_path(out, k):
@@ -141,14 +152,18 @@ def load_episode(path):
 
 # --- one episode (runs in a worker) ---
 
-_worker_env = {}   # per process: the simulator, built once on the first job
+_worker_env, _worker_policy = {}, {}   # per process: simulator and policy, built on the first job
 
 
-def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0):
-    """Run the oracle expert on one episode -> dict of arrays in the file format."""
+def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0, policy=None, dagger_steps=0):
+    """Run the oracle expert on one episode -> dict of arrays in the file format. With a policy
+    (model.Policy), it executes its own action in the first dagger_steps steps of each pick and
+    place reach; the stored action is always the expert's."""
     x = expert.Expert(e, plan="oracle", seed=seed, noise=noise, nav_noise=nav_noise, jitter=jitter)
     obs, info = e.reset(seed=seed, options={"episode": episode})
     x.reset()
+    if policy is not None:
+        policy.reset()
     steps = {k: [] for k in STEP_ARRAYS}
     reward, done = 0.0, False
     while not done:
@@ -158,7 +173,12 @@ def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0):
         steps["action"].append(action)
         steps["skill"].append(skill)
         steps["receptacle"].append(info["receptacle"])   # label of the state this obs shows
-        obs, reward, terminated, truncated, info = e.step(x.noisy(action))
+        executed = x.noisy(action)
+        if policy is not None:
+            learned, _ = policy.act(obs, reward)  # every step: its context is the whole episode
+            if 0 <= x.reach_step < dagger_steps:
+                executed = learned
+        obs, reward, terminated, truncated, info = e.step(executed)
         steps["reward"].append(reward)
         done = terminated or truncated
     data = {k: np.asarray(v, dtype=STEP_ARRAYS[k]) for k, v in steps.items()}
@@ -169,12 +189,16 @@ def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0):
 
 def collect_job(job):
     """Worker entry: record episode k to a temporary file -> (temporary path, success, steps)."""
-    k, episode, seed, noise, nav_noise, jitter, env_kwargs, out = job
+    k, episode, seed, noise, nav_noise, jitter, env_kwargs, out, policy, dagger_steps = job
     key = json.dumps(env_kwargs, sort_keys=True)
     if key not in _worker_env:
         _worker_env.clear()
         _worker_env[key] = env.RearrangeEnv(**env_kwargs)
-    data = record_episode(_worker_env[key], episode, seed, noise, nav_noise, jitter)
+    if policy and policy not in _worker_policy:
+        torch.set_num_threads(1)                        # one core per worker process
+        _worker_policy[policy] = model.load_policy(policy)
+    data = record_episode(_worker_env[key], episode, seed, noise, nav_noise, jitter,
+                          _worker_policy.get(policy), dagger_steps)
     tmp = f"{episode_path(out, k)}.{os.getpid()}.tmp"   # per process: an orphaned worker of a killed
     with open(tmp, "wb") as f:                          # run cannot write into this run's file
         np.savez_compressed(f, **data)                  # (a file object: savez adds no suffix)
@@ -207,6 +231,7 @@ def make_meta(cfg, env_kwargs):
         "nav_noise": cfg.nav_noise,
         "jitter": cfg.jitter,
         "keep_failed": cfg.keep_failed,
+        **({"policy": cfg.policy, "dagger_steps": cfg.dagger_steps} if cfg.policy else {}),   # older metas lack them
         "versions": {"python": platform.python_version(), "numpy": np.__version__,
                      "mujoco": mujoco.__version__},
     }
@@ -227,9 +252,9 @@ def check_or_write_meta(out, meta):
             old = json.load(f)
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: unreadable meta.json ({err})") from err
-    diff = [k for k in MUST_MATCH if old.get(k) != meta[k]]
+    diff = [k for k in MUST_MATCH if old.get(k) != meta.get(k)]
     if diff:
-        detail = "; ".join(f"{k}: directory has {old.get(k)!r}, this run wants {meta[k]!r}" for k in diff)
+        detail = "; ".join(f"{k}: directory has {old.get(k)!r}, this run wants {meta.get(k)!r}" for k in diff)
         raise ValueError(f"{path} records another dataset ({detail}). Use another --out, or the "
                          f"same settings to resume.")
     if old.get("versions") != meta["versions"]:
@@ -283,6 +308,18 @@ def episode_source(split, seed):
 
 # --- main loop ---
 
+def check_policy(path, env_kwargs):
+    """A --policy must be a train.py checkpoint for the env config this dataset records."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"--policy {path}: checkpoint not found")
+    want = dataclasses.asdict(env.EnvConfig(**env_kwargs))
+    got = model.load_policy(path).env_config
+    diff = sorted(k for k in want if got.get(k) != want[k])
+    if diff:
+        raise ValueError(f"--policy {path} was trained on env_config {', '.join(f'{k}={got.get(k)!r}' for k in diff)}; "
+                         f"this dataset records {', '.join(f'{k}={want[k]!r}' for k in diff)}")
+
+
 def parse_shard(shard):
     try:
         i, n = (int(v) for v in shard.split("/"))
@@ -299,6 +336,8 @@ def collect(cfg):
     need = cfg.episodes // shard_n + (shard_i < cfg.episodes % shard_n)
     max_draws = cfg.max_draws or 10 * need + 20
     env_kwargs = env_kwargs_of(cfg)
+    if cfg.policy:
+        check_policy(cfg.policy, env_kwargs)
     os.makedirs(cfg.out, exist_ok=True)
     check_or_write_meta(cfg.out, make_meta(cfg, env_kwargs))
     remove_temps(cfg.out, shard_i, shard_n)
@@ -324,7 +363,8 @@ def collect(cfg):
                     check_existing(cfg.out, k, have[k], episode, seed)
                     pending.append((k, None))
                     continue
-                job = (k, episode, seed, cfg.noise, cfg.nav_noise, cfg.jitter, env_kwargs, cfg.out)
+                job = (k, episode, seed, cfg.noise, cfg.nav_noise, cfg.jitter, env_kwargs, cfg.out,
+                       cfg.policy, cfg.dagger_steps)
                 pending.append((k, pool.apply_async(collect_job, (job,)) if pool else job))
             k, work = pending.popleft()
             if work is None:

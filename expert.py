@@ -96,6 +96,7 @@ class Expert:
         self.steps = steps
         self.gen, self.skill = None, None
         self.drift, self.following = 0.0, False
+        self.reach_step = -1                    # step of the current _approach, -1 outside one
 
     def act(self, obs, reward=0.0):
         """(action float32 (10,), skill id) for the current state; obs is unused: the expert is privileged."""
@@ -414,12 +415,13 @@ class Expert:
         label is a function of the observed distance, not one step at the end of the reach (with
         one grasp step, learned picks came within 2-7 cm of the object and never grasped: README)."""
         over_surface = self._furniture(place).kind == "surface"
-        for _ in range(timeout):
+        for step in range(timeout):
             ee, pt = self.p["ee"], np.asarray(point(), float)
             err = pt - ee
             dist = np.linalg.norm(err)
             if dist < tol or (self.p["held"] >= 0) == (grip > 0):   # there, or the grip took effect
-                return
+                break
+            self.reach_step = step              # DAgger (collect.py --policy) reads where a reach is
             e_xy = np.linalg.norm(err[:2])
             aim = pt + [0, 0, min(FUNNEL_HEIGHT, FUNNEL_SLOPE * e_xy)]
             # reaching out from rest would sweep the forearm (and a held object) through the edge
@@ -427,6 +429,7 @@ class Expert:
             if over_surface and e_xy > 0.15 and ee[2] < pt[2] + FUNNEL_HEIGHT - 0.03:
                 aim = np.array([*ee[:2], pt[2] + FUNNEL_HEIGHT])
             yield self._arm_action(self._ik(aim, DOWN, q0=self.p["arm"], iters=30), grip=grip if dist < zone else 0.0)
+        self.reach_step = -1
 
     def _retract(self):
         """Pull the end effector out of a drawer or the fridge before folding the arm."""

@@ -315,6 +315,34 @@ def test_pick_grasps_over_the_last_cm_of_its_reach():
     assert max(d for _, d in grasps) < expert.GRASP_ZONE + 0.01, grasps
 
 
+class _StillPolicy:
+    """Stands in for a trained policy in DAgger collection: it never moves."""
+
+    def reset(self):
+        pass
+
+    def act(self, obs, reward=0.0):
+        return np.zeros(env.ACTION_DIM, np.float32), -1
+
+
+def test_dagger_policy_drives_the_start_of_each_reach_and_the_expert_labels_it():
+    """collect.py --policy: in the first dagger_steps steps of a pick or place reach the env runs
+    the policy's action (here none: the arm stays put) while the demo stores the expert's; then the
+    expert takes over from where the policy left the arm and still solves the episode."""
+    e = env.RearrangeEnv(depth_size=8)
+    ep = _first("easy", lambda ep: True)
+    plain = collect.record_episode(e, ep, 0, 0.0)
+    data = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=15)
+    assert plain["success"] and data["success"]
+    for name in ("pick", "place"):
+        steps = np.flatnonzero(data["skill"] == env.SKILL_IDS[name])
+        joint_target = data["state"][steps[:16], 7:14]                 # before and after 15 still steps
+        assert np.abs(np.diff(joint_target, axis=0)).max() == 0, name
+        assert np.abs(data["action"][steps[:15], :7]).max() > 0.5, name   # the labels move the arm
+        assert np.abs(data["state"][steps[17], 7:14] - joint_target[-1]).max() > 0, name   # then it moves
+        assert len(steps) > np.sum(plain["skill"] == env.SKILL_IDS[name]), name
+
+
 def test_is_holding_covers_a_grasped_handle():
     ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
     e = env.RearrangeEnv(depth_size=8)
@@ -551,6 +579,21 @@ def checkpoints(tmp_path_factory):
                     "env_config": env_config, "rtg_max": 0.0}, path)
         paths.append(path)
     return paths
+
+
+def test_collect_with_a_policy(checkpoints, tmp_path):
+    """--policy (DAgger) runs the checkpoint in the workers, records it in meta.json, and refuses a
+    missing checkpoint or one trained on another env config."""
+    collect_run(tmp_path / "d", 1, "--max-steps", 25, "--keep-failed", "--policy", checkpoints[0], "--workers", 2)
+    meta = json.loads((tmp_path / "d" / "meta.json").read_text())
+    assert meta["policy"] == checkpoints[0] and meta["dagger_steps"] == 60
+    assert len([n for n in os.listdir(tmp_path / "d") if n.endswith(".npz")]) == 1
+    again = collect_run(tmp_path / "d", 1, "--max-steps", 25, "--keep-failed", check=False)
+    assert again.returncode != 0 and "policy" in again.stderr        # resuming needs the same policy
+    bad = collect_run(tmp_path / "x", 1, "--policy", tmp_path / "none.pt", check=False)
+    assert bad.returncode != 0 and "checkpoint not found" in bad.stderr
+    bad = collect_run(tmp_path / "y", 1, "--policy", checkpoints[0], check=False)   # max_steps 1500 vs 25
+    assert bad.returncode != 0 and "max_steps" in bad.stderr
 
 
 def test_evaluate_checkpoints(checkpoints, tmp_path):
@@ -910,6 +953,18 @@ def test_bad_data_is_refused(tmp_path):
     np.savez(os.path.join(data2, "ep_000000.npz"), **z)
     with pytest.raises(ValueError, match="state has shape"):
         train.load_demos(data2)
+
+
+def test_demos_from_several_directories(tmp_path):
+    """--data A,B trains on both (DAgger's aggregate), if they record the same env config."""
+    a = write_demos(str(tmp_path / "a"), n_episodes=2)
+    b = write_demos(str(tmp_path / "b"), n_episodes=3, seed=1)
+    demos, meta = train.load_demos(f"{a},{b}")
+    assert len(demos) == 5 and meta["env_config"]["depth_size"] == 16
+    assert len(train.load_demos(f"{a},{b}", max_demos=3)[0]) == 3
+    c = write_demos(str(tmp_path / "c"), n_episodes=1, size=8)
+    with pytest.raises(ValueError, match="env_config differs"):
+        train.load_demos(f"{a},{c}")
 
 
 def test_help_and_flags():

@@ -10,6 +10,7 @@ by a cosine decay to 0, and the checkpoint with the best success on `seen` episo
     python train.py --data data/demos --out ckpt/st.pt --eval-every 10    # keep the best seen success
     python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
     python train.py --data data/demos --out ckpt/part.pt --segments nav-pick,nav-place   # Sec. 5.5
+    python train.py --data data/demos,data/dagger --out ckpt/st2.pt --init ckpt/st.pt   # DAgger
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
     python train.py --data data/demos --out ckpt/st.pt --batch-size 256 --coverage 4 --dropout 0.1 \
         --epochs 254 --warmup-epochs 25          # the GPU budget of README "Results" (~10k iterations)
@@ -44,7 +45,7 @@ import model
 class TrainConfig:
     """Training run; every field is a command-line flag (--warmup-epochs 5 or --warmup_epochs=5)."""
     data: str = "data/demos"
-    """directory of ep_XXXXXX.npz demos and meta.json, written by collect.py"""
+    """directory of ep_XXXXXX.npz demos and meta.json, written by collect.py (several: DIR,DIR)"""
     out: str = "ckpt/st.pt"
     """checkpoint to write; CKPT.last.pt and CKPT.csv go beside it"""
     variant: str = "st"
@@ -212,14 +213,23 @@ def cut_segments(demos, names):
     return pieces
 
 
-def load_demos(data_dir, max_demos=0):
-    """All demos in memory (depth stays uint8) -> (list of episode dicts, meta)."""
-    meta = load_meta(data_dir)
-    files = sorted(glob.glob(os.path.join(data_dir, "ep_*.npz")))
+def load_demos(data, max_demos=0):
+    """All demos of a directory, or of several joined by commas (DAgger's aggregate: the demos and
+    the data collect.py --policy added), in memory (depth stays uint8) -> (list of episode dicts,
+    meta of the first directory)."""
+    dirs = data.split(",")
+    meta, files = load_meta(dirs[0]), []
+    for d in dirs:
+        other = load_meta(d)["env_config"]
+        if other != meta["env_config"]:
+            diff = sorted(k for k in set(other) | set(meta["env_config"]) if other.get(k) != meta["env_config"].get(k))
+            raise ValueError(f"{d}/meta.json: env_config differs from {dirs[0]}/meta.json in {diff}")
+        found = sorted(glob.glob(os.path.join(d, "ep_*.npz")))
+        if not found:
+            raise ValueError(f"no ep_*.npz files in {d!r}")
+        files += found
     if max_demos:
         files = files[:max_demos]
-    if not files:
-        raise ValueError(f"no ep_*.npz files in {data_dir!r}")
     size = int(meta["env_config"]["depth_size"])
     return [load_episode(f, size) for f in files], meta
 
