@@ -12,6 +12,7 @@ So numbers are comparable across runs and do not depend on the number of workers
                        --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
     python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
+    python evaluate.py --policy ckpt/st.pt --difficulty easy --assist reach  # the expert's reaches
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
@@ -75,6 +76,9 @@ class Config:
     """episodes per method written to --video"""
     log_every: float = 10.0
     """seconds between progress lines"""
+    assist: str = ""
+    """reach: while a checkpoint predicts pick (target not held) or place (target held), the
+    expert's closed-loop reach sets its arm and grip: what the rest of the policy achieves"""
     plot: str = ""
     """draw Fig. 3 (success and picked per architecture, context length, number of demos) to this
     PNG; needs matplotlib; without --policy it redraws from the JSON at --out"""
@@ -187,6 +191,30 @@ def rollout(policy, envs, episodes, seeds, on_step=None):
             for i, (ep, info) in enumerate(zip(episodes, infos))]
 
 
+class ReachAssist:
+    """--assist reach: the policy acts, but the arm and grip of a predicted pick (target not held)
+    or place (target held) are the expert's reach (expert.Expert.reach_action)."""
+
+    def __init__(self, policy, envs):
+        self.policy, self.envs = policy, envs
+        self.experts = [expert.Expert(e) for e in envs]
+
+    def reset(self):
+        self.policy.reset()
+        for x in self.experts:
+            x.reset()
+
+    def act_batch(self, obs, rewards):
+        actions, skills = self.policy.act_batch(obs, rewards)
+        for i, (x, e) in enumerate(zip(self.experts, self.envs)):
+            held, target = e.privileged()["held"], e.episode.target
+            kind = {env.SKILL_IDS["pick"]: held < 0, env.SKILL_IDS["place"]: held == target}
+            if kind.get(int(skills[i])):
+                reach = x.reach_action(env.SKILLS[int(skills[i])])
+                actions[i][env.ARM], actions[i][env.GRIP] = reach[env.ARM], reach[env.GRIP]
+        return actions, skills
+
+
 class ExpertBatch:
     """One scripted expert per env of a lock-step batch, behind the Policy interface."""
 
@@ -218,9 +246,11 @@ def actor(ref, env_config, n=1):
 
 
 def rollout_job(job):
-    """Worker entry: job = (tags, ref, env_config, episodes, seeds) -> list of tags + rollout result."""
-    tags, ref, env_config, episodes, seeds = job
+    """Worker entry: job = (tags, ref, env_config, episodes, seeds, assist) -> list of tags + rollout result."""
+    tags, ref, env_config, episodes, seeds, assist = job
     policy, envs = actor(ref, env_config, len(episodes))
+    if assist == "reach" and not ref.startswith("expert:"):
+        policy = ReachAssist(policy, envs)
     return [dict(tags, **r) for r in rollout(policy, envs, episodes, seeds)]
 
 
@@ -450,15 +480,21 @@ def evaluate(cfg):
     if cfg.batch < 1 or cfg.workers < 1 or cfg.episodes < 1 or cfg.seeds < 1:
         raise ValueError(f"--batch, --workers, --episodes and --seeds must be >= 1, got {cfg.batch}, "
                          f"{cfg.workers}, {cfg.episodes}, {cfg.seeds}")
+    if cfg.assist not in ("", "reach"):
+        raise ValueError(f"--assist must be reach or empty, got {cfg.assist!r}")
     splits = ["seen", "unseen"] if cfg.split == "both" else [cfg.split]
     methods = [parse_method(spec, cfg) for spec in cfg.policy]
+    for m in methods:
+        if cfg.assist and not m["spec"].startswith("expert:"):
+            m["name"] += " + expert reach"
     conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
     episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty) for s in splits}
     # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list: the same
     # batches (and so the same numbers) whatever the number of workers.
     chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
     jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
-             ref, dict(env_config, perturb=c == "perturb"), chunk, [reset_seed(s, ep.index, seed) for ep in chunk])
+             ref, dict(env_config, perturb=c == "perturb"), chunk, [reset_seed(s, ep.index, seed) for ep in chunk],
+             cfg.assist)
             for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
             for s in splits for c in conditions for chunk in chunks[s]]
     n_total = sum(len(job[3]) for job in jobs)

@@ -414,22 +414,38 @@ class Expert:
         (env.GRASP_DIST), so a learned reach that stops a few cm short still grasps, and the grip
         label is a function of the observed distance, not one step at the end of the reach (with
         one grasp step, learned picks came within 2-7 cm of the object and never grasped: README)."""
-        over_surface = self._furniture(place).kind == "surface"
         for step in range(timeout):
-            ee, pt = self.p["ee"], np.asarray(point(), float)
-            err = pt - ee
-            dist = np.linalg.norm(err)
-            if dist < tol or (self.p["held"] >= 0) == (grip > 0):   # there, or the grip took effect
-                break
+            pt = np.asarray(point(), float)
+            if np.linalg.norm(pt - self.p["ee"]) < tol or (self.p["held"] >= 0) == (grip > 0):
+                break                           # there, or the grip took effect
             self.reach_step = step              # DAgger (collect.py --policy) reads where a reach is
-            e_xy = np.linalg.norm(err[:2])
-            aim = pt + [0, 0, min(FUNNEL_HEIGHT, FUNNEL_SLOPE * e_xy)]
-            # reaching out from rest would sweep the forearm (and a held object) through the edge
-            # of a counter higher than the folded cup: first raise the cup in place
-            if over_surface and e_xy > 0.15 and ee[2] < pt[2] + FUNNEL_HEIGHT - 0.03:
-                aim = np.array([*ee[:2], pt[2] + FUNNEL_HEIGHT])
-            yield self._arm_action(self._ik(aim, DOWN, q0=self.p["arm"], iters=30), grip=grip if dist < zone else 0.0)
+            yield self._reach_step(place, pt, grip, zone)
         self.reach_step = -1
+
+    def _reach_step(self, place, pt, grip, zone):
+        """One step of _approach's closed-loop reach toward pt -> action."""
+        ee = self.p["ee"]
+        err = pt - ee
+        e_xy = np.linalg.norm(err[:2])
+        aim = pt + [0, 0, min(FUNNEL_HEIGHT, FUNNEL_SLOPE * e_xy)]
+        # reaching out from rest would sweep the forearm (and a held object) through the edge
+        # of a counter higher than the folded cup: first raise the cup in place
+        if self._furniture(place).kind == "surface" and e_xy > 0.15 and ee[2] < pt[2] + FUNNEL_HEIGHT - 0.03:
+            aim = np.array([*ee[:2], pt[2] + FUNNEL_HEIGHT])
+        grip = grip if np.linalg.norm(err) < zone else 0.0
+        return self._arm_action(self._ik(aim, DOWN, q0=self.p["arm"], iters=30), grip=grip)
+
+    def reach_action(self, kind):
+        """The action of the pick ("pick") or place ("place") reach in the current state, outside
+        the plan: toward the target's top, or toward the drop point over the goal with the held
+        object hanging below the cup. evaluate.py --assist reach runs it in place of a policy's arm
+        and grip, to measure what the rest of the policy achieves (README, the DAgger round)."""
+        self.p = p = self.env.privileged()
+        ep, k = p["episode"], p["target"]
+        if kind == "pick":
+            return self._reach_step(ep.object_places[k], p["objects"][k] + [0, 0, env.OBJ_HALF + 0.005], 1.0, GRASP_ZONE)
+        drop = np.asarray(p["goal"]) + (p["ee"] - p["objects"][k]) + [0, 0, 0.04]
+        return self._reach_step(ep.goal_place, drop, -1.0, RELEASE_ZONE)
 
     def _retract(self):
         """Pull the end effector out of a drawer or the fridge before folding the arm."""

@@ -294,6 +294,7 @@ def test_pick_label_is_a_function_of_the_state_not_of_the_steps_so_far():
                 y.reset()
                 y.steps = [("pick", None)]
                 gaps.append(np.abs(y.act(obs)[0] - action).max())
+                gaps.append(np.abs(y.reach_action("pick") - action).max())   # evaluate.py --assist reach
         obs, *_ = e.step(action)
     assert len(gaps) >= 3 and max(gaps) < 1e-6, gaps
 
@@ -341,6 +342,36 @@ def test_dagger_policy_drives_the_start_of_each_reach_and_the_expert_labels_it()
         assert np.abs(data["action"][steps[:15], :7]).max() > 0.5, name   # the labels move the arm
         assert np.abs(data["state"][steps[17], 7:14] - joint_target[-1]).max() > 0, name   # then it moves
         assert len(steps) > np.sum(plain["skill"] == env.SKILL_IDS[name]), name
+
+
+class _SkillPolicy:
+    """Stands in for a trained policy: always the same skill, a base command and a still arm."""
+
+    def __init__(self, skill):
+        self.skill = skill
+
+    def reset(self):
+        pass
+
+    def act_batch(self, obs, rewards):
+        return np.array([[0, 0, 0, 0, 0, 0, 0, 0.3, 0.1, 0]] * len(obs), np.float32), [self.skill] * len(obs)
+
+
+def test_reach_assist_takes_over_the_arm_of_a_predicted_pick_only():
+    """evaluate.py --assist reach: the expert's reach sets arm and grip while the policy predicts
+    pick with nothing held (or place with the target held), and nothing else."""
+    e, obs, x = _oracle_on_first_easy()
+    want = x.reach_action("pick")
+    assert np.abs(want[env.ARM]).max() > 0.5
+    for skill in ("pick", "navigate", "place"):                      # nothing is held yet
+        policy = evaluate.ReachAssist(_SkillPolicy(env.SKILL_IDS[skill]), [e])
+        policy.reset()
+        actions, skills = policy.act_batch([obs], [0.0])
+        assert skills == [env.SKILL_IDS[skill]] and np.allclose(actions[0][env.BASE], [0.3, 0.1])
+        if skill == "pick":
+            assert np.allclose(actions[0][env.ARM], want[env.ARM]) and actions[0][env.GRIP] == want[env.GRIP]
+        else:
+            assert not actions[0][env.ARM].any() and actions[0][env.GRIP] == 0, skill
 
 
 def test_is_holding_covers_a_grasped_handle():
@@ -612,6 +643,15 @@ def test_evaluate_checkpoints(checkpoints, tmp_path):
     assert res["methods"][0]["setting"]["context"] == 4 and res["methods"][0]["setting"]["variant"] == "st"
     rate = evaluate.success_check(checkpoints[0], 2)
     assert isinstance(rate, float) and rate == 0.0                        # untrained: no success in 25 steps
+
+
+def test_evaluate_with_the_experts_reach(checkpoints, tmp_path):
+    out = tmp_path / "as.json"
+    run("evaluate.py", "--policy", checkpoints[0], "--episodes", 2, "--workers", 1, "--assist", "reach", "--out", out)
+    res = json.loads(out.read_text())
+    assert res["methods"][0]["name"] == f"st ({checkpoints[0]}) + expert reach" and len(res["rollouts"]) == 2
+    bad = run("evaluate.py", "--policy", checkpoints[0], "--assist", "arm", "--out", out, check=False)
+    assert bad.returncode != 0 and "--assist must be reach" in bad.stderr
 
 
 def test_evaluate_checkpoint_errors(tmp_path):
