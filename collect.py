@@ -313,7 +313,7 @@ def check_policy(path, env_kwargs):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"--policy {path}: checkpoint not found")
     want = dataclasses.asdict(env.EnvConfig(**env_kwargs))
-    got = model.load_policy(path).env_config
+    got = model.load_checkpoint(path)["env_config"]
     diff = sorted(k for k in want if got.get(k) != want[k])
     if diff:
         raise ValueError(f"--policy {path} was trained on env_config {', '.join(f'{k}={got.get(k)!r}' for k in diff)}; "

@@ -191,6 +191,9 @@ def rollout(policy, envs, episodes, seeds, on_step=None):
             for i, (ep, info) in enumerate(zip(episodes, infos))]
 
 
+REACH_SKILLS = (env.SKILL_IDS["pick"], env.SKILL_IDS["place"])
+
+
 class ReachAssist:
     """--assist reach: the policy acts, but the arm and grip of a predicted pick (target not held)
     or place (target held) are the expert's reach (expert.Expert.reach_action)."""
@@ -206,11 +209,9 @@ class ReachAssist:
 
     def act_batch(self, obs, rewards):
         actions, skills = self.policy.act_batch(obs, rewards)
-        for i, (x, e) in enumerate(zip(self.experts, self.envs)):
-            held, target = e.privileged()["held"], e.episode.target
-            kind = {env.SKILL_IDS["pick"]: held < 0, env.SKILL_IDS["place"]: held == target}
-            if kind.get(int(skills[i])):
-                reach = x.reach_action(env.SKILLS[int(skills[i])])
+        for i, (x, skill) in enumerate(zip(self.experts, skills)):
+            reach = x.reach_action(env.SKILLS[skill]) if skill in REACH_SKILLS else None
+            if reach is not None:
                 actions[i][env.ARM], actions[i][env.GRIP] = reach[env.ARM], reach[env.GRIP]
         return actions, skills
 

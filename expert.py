@@ -375,8 +375,7 @@ class Expert:
         k = self.p["target"]
         place = self.p["episode"].object_places[k]
         for attempt in range(3):                 # a missed grasp aims 1 cm lower
-            top = lambda: self.p["objects"][k] + [0, 0, env.OBJ_HALF + 0.005 - 0.01 * attempt]
-            yield from self._approach(place, top, PICK_TOL, grip=1.0, zone=GRASP_ZONE)
+            yield from self._approach(place, lambda: self._pick_point(attempt), PICK_TOL, grip=1.0, zone=GRASP_ZONE)
             if self.p["held"] < 0:
                 yield self._arm_action(self.p["arm_target"], grip=1.0)
             if self.p["held"] == k:
@@ -390,14 +389,22 @@ class Expert:
         ep = self.p["episode"]
         k = self.p["target"]
         if self.p["held"] == k:
-            offset = self.p["ee"] - self.p["objects"][k]          # object hangs below the cup
-            drop = np.asarray(self.p["goal"]) + offset + [0, 0, 0.04]
+            drop = self._drop_point()
             yield from self._approach(ep.goal_place, lambda: drop, PLACE_TOL, grip=-1.0, zone=RELEASE_ZONE)
         for _ in range(3):
             yield self._arm_action(self.p["arm_target"], grip=-1.0)
         yield from self._path_arm([self.p["ee"] + [0, 0, 0.1]], DOWN)
         yield from self._retract()
         yield from self._rest()
+
+    def _pick_point(self, attempt=0):
+        """Where the pick reaches: just above the target's top (1 cm lower per missed attempt)."""
+        return self.p["objects"][self.p["target"]] + [0, 0, env.OBJ_HALF + 0.005 - 0.01 * attempt]
+
+    def _drop_point(self):
+        """Where the place reaches: the cup 4 cm above the goal, the held object hanging below it."""
+        offset = self.p["ee"] - self.p["objects"][self.p["target"]]
+        return np.asarray(self.p["goal"]) + offset + [0, 0, 0.04]
 
     def _approach(self, place, point, tol, grip, zone, timeout=150):
         """Bring the cup, pointing down, to point() (re-read every step) from above, closed loop:
@@ -437,15 +444,16 @@ class Expert:
 
     def reach_action(self, kind):
         """The action of the pick ("pick") or place ("place") reach in the current state, outside
-        the plan: toward the target's top, or toward the drop point over the goal with the held
-        object hanging below the cup. evaluate.py --assist reach runs it in place of a policy's arm
-        and grip, to measure what the rest of the policy achieves (README, the DAgger round)."""
+        the plan, or None where that reach does not apply (a pick with something held, a place
+        without the target). evaluate.py --assist reach runs it in place of a policy's arm and
+        grip, to measure what the rest of the policy achieves (README, the DAgger round)."""
         self.p = p = self.env.privileged()
-        ep, k = p["episode"], p["target"]
-        if kind == "pick":
-            return self._reach_step(ep.object_places[k], p["objects"][k] + [0, 0, env.OBJ_HALF + 0.005], 1.0, GRASP_ZONE)
-        drop = np.asarray(p["goal"]) + (p["ee"] - p["objects"][k]) + [0, 0, 0.04]
-        return self._reach_step(ep.goal_place, drop, -1.0, RELEASE_ZONE)
+        ep = p["episode"]
+        if kind == "pick" and p["held"] < 0:
+            return self._reach_step(ep.object_places[p["target"]], self._pick_point(), 1.0, GRASP_ZONE)
+        if kind == "place" and p["held"] == p["target"]:
+            return self._reach_step(ep.goal_place, self._drop_point(), -1.0, RELEASE_ZONE)
+        return None
 
     def _retract(self):
         """Pull the end effector out of a drawer or the fridge before folding the arm."""

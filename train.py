@@ -218,9 +218,10 @@ def load_demos(data, max_demos=0):
     the data collect.py --policy added), in memory (depth stays uint8) -> (list of episode dicts,
     meta of the first directory)."""
     dirs = data.split(",")
-    meta, files = load_meta(dirs[0]), []
-    for d in dirs:
-        other = load_meta(d)["env_config"]
+    metas = [load_meta(d) for d in dirs]
+    meta, files = metas[0], []
+    for d, m in zip(dirs, metas):
+        other = m["env_config"]
         if other != meta["env_config"]:
             diff = sorted(k for k in set(other) | set(meta["env_config"]) if other.get(k) != meta["env_config"].get(k))
             raise ValueError(f"{d}/meta.json: env_config differs from {dirs[0]}/meta.json in {diff}")
