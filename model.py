@@ -51,6 +51,10 @@ class ModelConfig:
     """visual embedding size (paper: 256)"""
     d_state: int = 64
     """state embedding size (paper: 256)"""
+    state_hidden: int = 0
+    """hidden width of a 3-layer state MLP; 0: the 2-layer MLP of width d_state (the default, and
+    what checkpoints without this field hold). 256 fit the reach's labels better, picked less
+    (README, "The state-MLP round")"""
     d_model: int = 128
     """transformer width (paper: 512; 128 keeps a rollout step under 5 ms on one CPU core)"""
     n_layer: int = 2
@@ -212,8 +216,9 @@ class SkillTransformer(nn.Module):
         v = cfg.variant
         # Sec. 4.1: depth -> visual embedding, state -> MLP embedding, concatenated into x_t.
         self.vis = SmallCNN(cfg.depth_size, cfg.d_vis) if cfg.encoder == "cnn" else ResNet18(cfg.d_vis)
-        self.state_mlp = nn.Sequential(nn.Linear(cfg.state_dim, cfg.d_state), nn.ReLU(),
-                                       nn.Linear(cfg.d_state, cfg.d_state), nn.ReLU())
+        H = cfg.state_hidden
+        widths = (cfg.state_dim, H, H, cfg.d_state) if H else (cfg.state_dim, cfg.d_state, cfg.d_state)
+        self.state_mlp = nn.Sequential(*[m for i, o in zip(widths, widths[1:]) for m in (nn.Linear(i, o), nn.ReLU())])
         d_tok = cfg.d_vis + cfg.d_state  # a linear map takes x_t to d_model if the sizes differ
         self.tok_proj = nn.Identity() if d_tok == cfg.d_model else nn.Linear(d_tok, cfg.d_model)
         self.pos_emb = nn.Parameter(torch.zeros(1, cfg.context, cfg.d_model))  # per-timestep, Sec. 4.1

@@ -804,6 +804,26 @@ def test_output_shapes(variant):
         assert out["aux_logits"].shape == (3, 6, 4)
 
 
+def test_state_hidden_mlp_and_checkpoints_without_it(tmp_path):
+    """state_hidden > 0: a 3-layer state MLP of that width; a checkpoint saved before the field
+    existed (no "state_hidden" in its model_args) still loads, with the 2-layer MLP."""
+    cfg = model.ModelConfig(depth_size=16, context=4, state_hidden=24, **TINY)
+    net = model.SkillTransformer(cfg)
+    assert [m.out_features for m in net.state_mlp if isinstance(m, torch.nn.Linear)] == [24, 24, cfg.d_state]
+    assert net(random_batch(cfg, B=2))["arm"].shape == (2, 4, 7)
+    old = model.ModelConfig(depth_size=16, context=4, **TINY)
+    args = dataclasses.asdict(old)
+    del args["state_hidden"]
+    path = str(tmp_path / "old.pt")
+    train.save_atomic({"model": model.SkillTransformer(old).state_dict(), "model_args": args,
+                       "env_config": {"depth_size": 16}, "rtg_max": 1.0}, path)
+    mlp = model.load_policy(path).model.state_mlp
+    assert [m.out_features for m in mlp if isinstance(m, torch.nn.Linear)] == [old.d_state, old.d_state]
+    train.check_model_args({"model_args": args}, old, path)        # --init and --resume accept it
+    with pytest.raises(ValueError, match="state_hidden"):
+        train.check_model_args({"model_args": args}, cfg, path)
+
+
 @pytest.mark.parametrize("variant", model.VARIANTS)
 def test_causality(variant):
     """Changing step k's inputs (any of them) never changes an output at a step < k."""

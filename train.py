@@ -54,6 +54,8 @@ class TrainConfig:
     """context length C in steps (Sec. 4.1)"""
     d_model: int = 128
     """transformer width; the visual and state embeddings get half each (paper: 512)"""
+    state_hidden: int = 0
+    """hidden width of the 3-layer state MLP (0: the 2-layer MLP of width d_model / 2)"""
     n_layer: int = 2
     """layers per transformer (Sec. 4.1)"""
     n_head: int = 4
@@ -301,9 +303,9 @@ def save_atomic(obj, path):
 def check_model_args(ckpt, margs, ckpt_path):
     """Resuming or fine-tuning needs the same network as the checkpoint's."""
     want = asdict(margs)
-    if ckpt["model_args"] != want:
-        diff = {k: (ckpt["model_args"].get(k), want.get(k)) for k in set(want) | set(ckpt["model_args"])
-                if ckpt["model_args"].get(k) != want.get(k)}
+    have = {**asdict(model.ModelConfig()), **ckpt["model_args"]}   # a field added later: its default
+    if have != want:
+        diff = {k: (have.get(k), want.get(k)) for k in set(want) | set(have) if have.get(k) != want.get(k)}
         raise ValueError(f"{ckpt_path}: model settings differ from the command line's "
                          f"(checkpoint, now): {diff}")
 
@@ -376,7 +378,8 @@ def train(cfg):
     # model
     margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]), context=cfg.context,
                               d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
-                              d_model=cfg.d_model, n_layer=cfg.n_layer, n_head=cfg.n_head,
+                              d_model=cfg.d_model, state_hidden=cfg.state_hidden,
+                              n_layer=cfg.n_layer, n_head=cfg.n_head,
                               dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant,
                               prev_action=cfg.action_dropout < 1)
     last_path, csv_path = stem(cfg.out) + ".last.pt", stem(cfg.out) + ".csv"
