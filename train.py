@@ -215,6 +215,11 @@ def cut_segments(demos, names):
     return pieces
 
 
+def dict_diff(a, b):
+    """Sorted keys whose values differ between two dicts (a key missing from one counts)."""
+    return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+
+
 def load_demos(data, max_demos=0):
     """All demos of a directory, or of several joined by commas (DAgger's aggregate: the demos and
     the data collect.py --policy added), in memory (depth stays uint8) -> (list of episode dicts,
@@ -223,9 +228,8 @@ def load_demos(data, max_demos=0):
     metas = [load_meta(d) for d in dirs]
     meta, files = metas[0], []
     for d, m in zip(dirs, metas):
-        other = m["env_config"]
-        if other != meta["env_config"]:
-            diff = sorted(k for k in set(other) | set(meta["env_config"]) if other.get(k) != meta["env_config"].get(k))
+        diff = dict_diff(m["env_config"], meta["env_config"])
+        if diff:
             raise ValueError(f"{d}/meta.json: env_config differs from {dirs[0]}/meta.json in {diff}")
         found = sorted(glob.glob(os.path.join(d, "ep_*.npz")))
         if not found:
@@ -305,7 +309,7 @@ def check_model_args(ckpt, margs, ckpt_path):
     want = asdict(margs)
     have = {**asdict(model.ModelConfig()), **ckpt["model_args"]}   # a field added later: its default
     if have != want:
-        diff = {k: (have.get(k), want.get(k)) for k in set(want) | set(have) if have.get(k) != want.get(k)}
+        diff = {k: (have.get(k), want.get(k)) for k in dict_diff(have, want)}
         raise ValueError(f"{ckpt_path}: model settings differ from the command line's "
                          f"(checkpoint, now): {diff}")
 
@@ -313,8 +317,8 @@ def check_model_args(ckpt, margs, ckpt_path):
 def check_env_config(ckpt, meta, ckpt_path, data_dir):
     """A model trained on one env config must not be trained or compared on data from another."""
     a, b = ckpt["env_config"], meta["env_config"]
-    if a != b:
-        diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    diff = dict_diff(a, b)
+    if diff:
         raise ValueError(f"{ckpt_path} was trained with env_config different from {data_dir}/meta.json in "
                          f"{diff}: " + ", ".join(f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in diff))
 
