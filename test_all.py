@@ -824,6 +824,35 @@ def test_state_hidden_mlp_and_checkpoints_without_it(tmp_path):
         train.check_model_args({"model_args": args}, cfg, path)
 
 
+def test_near_features_feed_the_reach_targets_at_centimetre_scale(tmp_path):
+    """near_scale > 0: the state MLP reads the normalised state and tanh(v / near_scale) of the
+    cup-to-object and cup-to-goal vectors; 0 (and a checkpoint without the field) reads the state alone."""
+    assert [name for name, n in env.STATE_LAYOUT for _ in range(n)][18:24] == ["obj_start"] * 3 + ["goal"] * 3
+    assert model.NEAR_INDEX == list(range(18, 24))
+    cfg = model.ModelConfig(depth_size=16, context=4, near_scale=0.1, **TINY)
+    net = model.SkillTransformer(cfg)
+    seen = []
+    net.state_mlp.register_forward_hook(lambda m, inp, out: seen.append(inp[0]))
+    batch = random_batch(cfg, B=2)
+    assert net(batch)["arm"].shape == (2, 4, 7)
+    x = seen[-1]
+    assert x.shape == (2, 4, env.STATE_DIM + 6)
+    assert torch.allclose(x[..., :env.STATE_DIM], (batch["state"] - net.state_mean) / net.state_std)
+    assert torch.allclose(x[..., env.STATE_DIM:], torch.tanh(batch["state"][..., 18:24] / 0.1))
+    # a 2 cm move of the object changes the near inputs by ~0.2, the normalised ones by 0.02 / std
+    near = lambda v: torch.tanh(torch.tensor(v) / cfg.near_scale)
+    assert float(near(0.03) - near(0.01)) > 0.15
+    old = model.ModelConfig(depth_size=16, context=4, **TINY)
+    args = dataclasses.asdict(old)
+    del args["near_scale"]
+    path = str(tmp_path / "old.pt")
+    train.save_atomic({"model": model.SkillTransformer(old).state_dict(), "model_args": args,
+                       "env_config": {"depth_size": 16}, "rtg_max": 1.0}, path)
+    assert model.load_policy(path).model.state_mlp[0].in_features == env.STATE_DIM
+    with pytest.raises(ValueError, match="near_scale"):
+        train.check_model_args({"model_args": args}, cfg, path)
+
+
 @pytest.mark.parametrize("variant", model.VARIANTS)
 def test_causality(variant):
     """Changing step k's inputs (any of them) never changes an output at a step < k."""

@@ -56,6 +56,9 @@ class TrainConfig:
     """transformer width; the visual and state embeddings get half each (paper: 512)"""
     state_hidden: int = 0
     """hidden width of the 3-layer state MLP (0: the 2-layer MLP of width d_model / 2)"""
+    near_scale: float = 0.0
+    """metres: > 0 also feeds tanh(v / near_scale) of the cup-to-object and cup-to-goal vectors
+    to the state MLP (model.NEAR_FIELDS); 0: off"""
     n_layer: int = 2
     """layers per transformer (Sec. 4.1)"""
     n_head: int = 4
@@ -382,7 +385,7 @@ def train(cfg):
     # model
     margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]), context=cfg.context,
                               d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
-                              d_model=cfg.d_model, state_hidden=cfg.state_hidden,
+                              d_model=cfg.d_model, state_hidden=cfg.state_hidden, near_scale=cfg.near_scale,
                               n_layer=cfg.n_layer, n_head=cfg.n_head,
                               dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant,
                               prev_action=cfg.action_dropout < 1)
