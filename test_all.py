@@ -804,6 +804,17 @@ def test_output_shapes(variant):
         assert out["aux_logits"].shape == (3, 6, 4)
 
 
+def save_checkpoint_without(tmp_path, field):
+    """A tiny checkpoint as saved before ModelConfig had `field` -> (its config, model_args, path)."""
+    old = model.ModelConfig(depth_size=16, context=4, **TINY)
+    args = dataclasses.asdict(old)
+    del args[field]
+    path = str(tmp_path / "old.pt")
+    train.save_atomic({"model": model.SkillTransformer(old).state_dict(), "model_args": args,
+                       "env_config": {"depth_size": 16}, "rtg_max": 1.0}, path)
+    return old, args, path
+
+
 def test_state_hidden_mlp_and_checkpoints_without_it(tmp_path):
     """state_hidden > 0: a 3-layer state MLP of that width; a checkpoint saved before the field
     existed (no "state_hidden" in its model_args) still loads, with the 2-layer MLP."""
@@ -811,12 +822,7 @@ def test_state_hidden_mlp_and_checkpoints_without_it(tmp_path):
     net = model.SkillTransformer(cfg)
     assert [m.out_features for m in net.state_mlp if isinstance(m, torch.nn.Linear)] == [24, 24, cfg.d_state]
     assert net(random_batch(cfg, B=2))["arm"].shape == (2, 4, 7)
-    old = model.ModelConfig(depth_size=16, context=4, **TINY)
-    args = dataclasses.asdict(old)
-    del args["state_hidden"]
-    path = str(tmp_path / "old.pt")
-    train.save_atomic({"model": model.SkillTransformer(old).state_dict(), "model_args": args,
-                       "env_config": {"depth_size": 16}, "rtg_max": 1.0}, path)
+    old, args, path = save_checkpoint_without(tmp_path, "state_hidden")
     mlp = model.load_policy(path).model.state_mlp
     assert [m.out_features for m in mlp if isinstance(m, torch.nn.Linear)] == [old.d_state, old.d_state]
     train.check_model_args({"model_args": args}, old, path)        # --init and --resume accept it
@@ -842,12 +848,7 @@ def test_near_features_feed_the_reach_targets_at_centimetre_scale(tmp_path):
     # a 2 cm move of the object changes the near inputs by ~0.2, the normalised ones by 0.02 / std
     near = lambda v: torch.tanh(torch.tensor(v) / cfg.near_scale)
     assert float(near(0.03) - near(0.01)) > 0.15
-    old = model.ModelConfig(depth_size=16, context=4, **TINY)
-    args = dataclasses.asdict(old)
-    del args["near_scale"]
-    path = str(tmp_path / "old.pt")
-    train.save_atomic({"model": model.SkillTransformer(old).state_dict(), "model_args": args,
-                       "env_config": {"depth_size": 16}, "rtg_max": 1.0}, path)
+    _, args, path = save_checkpoint_without(tmp_path, "near_scale")
     assert model.load_policy(path).model.state_mlp[0].in_features == env.STATE_DIM
     with pytest.raises(ValueError, match="near_scale"):
         train.check_model_args({"model_args": args}, cfg, path)
