@@ -22,7 +22,8 @@ the +- is over rollout seeds (--seeds), with several over training seeds. Table 
 episodes whose target starts in a closed drawer, the rate of picking the target and the accuracy
 of the predicted skill against the ground-truth rule of Appendix D (info["skill_gt"]), without
 and with the perturbation (the drawer snaps shut once after it has been open for a while).
-Results go to --out (JSON with every rollout) and the same name with .md (the tables).
+Results go to --out (JSON with every rollout: outcome, failure, skill counts, and where it ended,
+held_at_end and goal_distance_at_end) and the same name with .md (the tables).
 """
 import argparse
 import dataclasses
@@ -184,11 +185,15 @@ def rollout(policy, envs, episodes, seeds, on_step=None):
             correct[i] += int(skills[i]) == int(infos[i]["skill_gt"])
             obs[i], reward[i], terminated, truncated, infos[i] = envs[i].step(actions[i])
             total[i], steps[i], done[i] = total[i] + reward[i], steps[i] + 1, terminated or truncated
+    # Where each episode ended, to tell a failed place from a dropped or never-carried object.
+    ends = [e.privileged() for e in envs[:n]]
     return [{"index": int(ep.index), "difficulty": ep.difficulty, "kind": ep.kind,
              "success": bool(info["success"]), "picked": bool(info["picked"]), "perturbed": bool(info["perturbed"]),
              "failure": info["failure"], "steps": steps[i], "skill_predicted": int(predicted[i]),
-             "skill_correct": correct[i], "return": float(total[i])}
-            for i, (ep, info) in enumerate(zip(episodes, infos))]
+             "skill_correct": correct[i], "return": float(total[i]),
+             "held_at_end": bool(end["held"] == ep.target),
+             "goal_distance_at_end": float(np.linalg.norm(end["objects"][ep.target] - end["goal"]))}
+            for i, (ep, info, end) in enumerate(zip(episodes, infos, ends))]
 
 
 REACH_SKILLS = (env.SKILL_IDS["pick"], env.SKILL_IDS["place"])

@@ -589,8 +589,11 @@ def test_fixed_plan_fails_where_oracle_succeeds():
     for ep in hard:
         seed = evaluate.reset_seed("unseen", ep.index, 0)
         fixed = evaluate.rollout(evaluate.ExpertBatch([e], "fixed"), [e], [ep], [seed])[0]
-        assert not fixed["success"] and not fixed["picked"], ep
-        if evaluate.rollout(evaluate.ExpertBatch([e], "oracle"), [e], [ep], [seed])[0]["success"]:
+        assert not fixed["success"] and not fixed["picked"] and not fixed["held_at_end"], ep
+        oracle = evaluate.rollout(evaluate.ExpertBatch([e], "oracle"), [e], [ep], [seed])[0]
+        if oracle["success"]:             # where the episode ended: placed, let go, within 15 cm
+            assert not oracle["held_at_end"] and oracle["goal_distance_at_end"] < env.SUCCESS_DIST, oracle
+            assert fixed["goal_distance_at_end"] > env.SUCCESS_DIST, fixed
             break
     else:
         pytest.fail(f"the oracle expert failed all of {[ep.index for ep in hard]}")
