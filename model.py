@@ -81,6 +81,13 @@ class ModelConfig:
     """st, no_skill, lstm, dt or dt_skill"""
     prev_action: bool = True
     """a_{t-1} tokens in action inference; False leaves them out (train.py --action-dropout 1)"""
+    skill_first: bool = False
+    """st/lstm: order each step's action tokens (z_t, a_{t-1}, x_t) and read the action from x_t's
+    token, whose residual stream carries the observation; False: the paper's (x_t, a_{t-1}, z_t),
+    read from z_t's token, to which attention must first copy x_t (README, "The skill-token round")"""
+    detach_skill_input: bool = False
+    """st/lstm: the skill and receptacle losses do not train the shared encoder (skill inference
+    reads x_t.detach()); False: end to end, as the paper (Sec. 4.2)"""
 
 
 # --- observation encoders (Sec. 4.1 "Input") ---
@@ -281,6 +288,7 @@ class SkillTransformer(nn.Module):
         (T = 1 with last_only: the current step alone, for a rollout).
 
         Left padding (mask False) becomes a zero token, exactly as in a rollout's first C steps."""
+        x = x.detach() if self.cfg.detach_skill_input else x
         h = self.skill_net(x * mask[..., None] + self.pos_emb[:, :x.shape[1]], last_only)
         return self.skill_head(h), self.aux_head(h)
 
@@ -291,7 +299,8 @@ class SkillTransformer(nn.Module):
         v, (B, T, D) = self.cfg.variant, x.shape
         a = (self.act_emb(prev_action),) if self.cfg.prev_action else ()  # without it: (x_t, z_t) etc.
         if v in ("st", "lstm"):
-            toks = (x, *a, self.skill_emb(skill))  # (x_t, a_{t-1}, z_t), Sec. 4.1
+            z = self.skill_emb(skill)
+            toks = (z, *a, x) if self.cfg.skill_first else (x, *a, z)  # (x_t, a_{t-1}, z_t), Sec. 4.1
         elif v == "no_skill":
             toks = (x, *a)
         else:

@@ -857,6 +857,34 @@ def test_near_features_feed_the_reach_targets_at_centimetre_scale(tmp_path):
         train.check_model_args({"model_args": args}, cfg, path)
 
 
+def test_skill_first_reads_the_action_at_x_and_detached_skill_input(tmp_path):
+    """skill_first: z_t still steers a_t (and nothing before it); detach_skill_input: the skill and
+    receptacle losses leave the encoder's gradient at zero, the action losses do not; checkpoints
+    saved before the two fields existed load with the paper's behaviour."""
+    cfg = model.ModelConfig(depth_size=16, context=6, skill_first=True, **TINY)
+    net = model.SkillTransformer(cfg).eval()
+    batch = random_batch(cfg)
+    with torch.no_grad():
+        ref = net(batch)["arm"]
+        batch["skill"][:, 3] = (batch["skill"][:, 3] + 1) % cfg.n_skills
+        out = net(batch)["arm"]
+    torch.testing.assert_close(out[:, :3], ref[:, :3])
+    assert not torch.allclose(out[:, 3], ref[:, 3])
+    for detach in (False, True):
+        torch.manual_seed(0)
+        cfg = model.ModelConfig(depth_size=16, context=6, detach_skill_input=detach, **TINY)
+        net = model.SkillTransformer(cfg)
+        losses = net.compute_loss(net(batch), batch)
+        for terms, zero in ((("skill", "aux"), detach), (("arm", "base", "grip"), False)):
+            net.zero_grad()
+            sum(losses[k] for k in terms).backward(retain_graph=True)
+            g = sum(0.0 if p.grad is None else float(p.grad.abs().sum()) for p in net.state_mlp.parameters())
+            assert (g == 0) == zero, (detach, terms, g)
+    for field in ("skill_first", "detach_skill_input"):
+        old, args, path = save_checkpoint_without(tmp_path, field)
+        assert getattr(model.load_policy(path).model.cfg, field) is False
+
+
 @pytest.mark.parametrize("variant", model.VARIANTS)
 def test_causality(variant):
     """Changing step k's inputs (any of them) never changes an output at a step < k."""
@@ -879,9 +907,10 @@ def test_causality(variant):
             assert not torch.allclose(ref["arm"][:, k:], net(pert)["arm"][:, k:])  # the future does change
 
 
-def test_padding_matches_rollout():
+@pytest.mark.parametrize("skill_first", (False, True))
+def test_padding_matches_rollout(skill_first):
     """A left-padded training window gives the Policy's outputs on the same steps."""
-    cfg = model.ModelConfig(depth_size=16, context=5, **TINY)
+    cfg = model.ModelConfig(depth_size=16, context=5, skill_first=skill_first, **TINY)
     net = model.SkillTransformer(cfg).eval()
     policy = model.Policy(net, {"depth_size": 16}, rtg_max=1.0)
     rng = np.random.default_rng(0)

@@ -59,6 +59,11 @@ class TrainConfig:
     near_scale: float = 0.0
     """metres: > 0 also feeds tanh(v / near_scale) of the cup-to-object and cup-to-goal vectors
     to the state MLP (model.NEAR_FIELDS); 0: off"""
+    skill_first: bool = False
+    """st/lstm: action tokens (z_t, a_{t-1}, x_t) per step, the action read from x_t's token
+    (model.ModelConfig.skill_first); False: the paper's (x_t, a_{t-1}, z_t)"""
+    detach_skill_input: bool = False
+    """st/lstm: the skill and receptacle losses do not train the shared encoder"""
     n_layer: int = 2
     """layers per transformer (Sec. 4.1)"""
     n_head: int = 4
@@ -386,6 +391,7 @@ def train(cfg):
     margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]), context=cfg.context,
                               d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
                               d_model=cfg.d_model, state_hidden=cfg.state_hidden, near_scale=cfg.near_scale,
+                              skill_first=cfg.skill_first, detach_skill_input=cfg.detach_skill_input,
                               n_layer=cfg.n_layer, n_head=cfg.n_head,
                               dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant,
                               prev_action=cfg.action_dropout < 1)
