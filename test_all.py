@@ -4,6 +4,7 @@ tiny end-to-end run of every script as a subprocess.
     python -m pytest test_all.py -q
 """
 import dataclasses
+import glob
 import itertools
 import json
 import os
@@ -1111,6 +1112,24 @@ def test_train_script_then_policy(trained):
         assert np.all(np.abs(action) <= 1) and action[env.GRIP] in env.GRIP_VALUES
     policy.reset()
     assert policy.t == 0 and not policy.mask.any()
+
+
+def test_validate_reports_the_fit_per_skill(trained, tmp_path):
+    """train.py --validate: every demo step counted once, per skill and in all; the all row is the
+    step-weighted mean of the skill rows; both z columns and the skill accuracy for st; JSON beside."""
+    data, out, _ = trained
+    ckpt = str(tmp_path / "st.pt")
+    shutil.copy(out, ckpt)
+    table = train.validate(train.TrainConfig(data=data, validate=ckpt, threads=1))[ckpt]
+    n = sum(len(np.load(f)["action"]) for f in glob.glob(os.path.join(data, "ep_*.npz")))
+    rows = [table[s] for s in env.SKILLS if table[s]["steps"]]
+    assert table["all"]["steps"] == n == sum(r["steps"] for r in rows)
+    for k in ("skill_acc", "arm", "base", "grip_acc", "arm_zpred", "base_zpred", "grip_acc_zpred"):
+        mean = sum(r[k] * r["steps"] for r in rows) / n
+        assert np.isfinite(table["all"][k]) and abs(table["all"][k] - mean) < 1e-5, k
+    assert 0 <= table["all"]["skill_acc"] <= 1
+    with open(ckpt[:-3] + ".val.json") as f:
+        assert json.load(f)["per_skill"]["all"]["steps"] == n
 
 
 def test_checkpoint_round_trip(tmp_path):

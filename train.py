@@ -11,6 +11,7 @@ by a cosine decay to 0, and the checkpoint with the best success on `seen` episo
     python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
     python train.py --data data/demos --out ckpt/part.pt --segments nav-pick,nav-place   # Sec. 5.5
     python train.py --data data/demos,data/dagger --out ckpt/st2.pt --init ckpt/st.pt   # DAgger
+    python train.py --data data/heldout --validate ckpt/st.pt,ckpt/dt.pt   # fit on held-out demos
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
     python train.py --data data/demos --out ckpt/st.pt --batch-size 256 --coverage 4 --dropout 0.1 \
         --epochs 254 --warmup-epochs 25          # the GPU budget of README "Results" (~10k iterations)
@@ -114,6 +115,10 @@ class TrainConfig:
     """auto (cuda if available), cpu or cuda"""
     threads: int = 0
     """torch CPU threads per process (0: all cores divided among the DDP ranks)"""
+    validate: str = ""
+    """CKPT (or several, joined by commas): train nothing; measure its teacher-forced fit on the
+    demos of --data per skill, with the true and with its own predicted skills as z, print the
+    table and write it to CKPT.val.json (held-out demos: collect.py with another --seed)"""
 
 
 LOSS_TERMS = ("loss", "skill", "aux", "arm", "base", "grip")
@@ -526,6 +531,60 @@ def train(cfg):
     return cfg.out
 
 
+# --- validation: the fit on held-out demos ---
+
+@torch.no_grad()
+def validate(cfg):
+    """Per skill of the demos' labels: arm and base MSE and grip accuracy of the action at every step
+    (its window the C steps up to it), with the true skills as z (teacher forcing, as trained) and,
+    for st and lstm, with the skill module's own argmax (as in a rollout: the "_zpred" columns), and
+    the skill module's accuracy against the labels. -> {checkpoint: {skill: {metric: value}}}"""
+    torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
+    demos, meta = load_demos(cfg.data, cfg.max_demos)
+    flat, starts = flatten_demos(demos, "cpu")
+    ends = np.concatenate([np.stack([np.full(len(d["action"]), i), np.arange(len(d["action"]))], 1)
+                           for i, d in enumerate(demos)])
+    results = {}
+    for path in cfg.validate.split(","):
+        ckpt = model.load_checkpoint(path)
+        check_env_config(ckpt, meta, path, cfg.data)
+        net = model.model_from_checkpoint(ckpt).eval()
+        sums = {}  # (skill label, metric) -> per-step values
+        for i in range(0, len(ends), 512):
+            b = get_batch(flat, starts, ends[i:i + 512], net.cfg.context)
+            x = net.embed_obs(b["depth"], b["state"])
+            label, act = b["skill"][:, -1], b["action"][:, -1]
+            z, per = {"": b["skill"]}, {}   # arm etc.: z = the true skills (or no z); arm_zpred etc.: predicted
+            if net.has_skill_module:
+                z["_zpred"] = net.infer_skill(x, b["mask"])[0].argmax(-1)
+                per["skill_acc"] = (z["_zpred"][:, -1] == label).float()
+            for name, zz in z.items():
+                o = {k: v[:, -1] for k, v in net.infer_action(x, b["prev_action"], b["mask"], skill=zz,
+                                                              rtg=b["rtg"]).items()}
+                per[f"arm{name}"] = ((o["arm"] - act[:, env.ARM]) ** 2).mean(-1)
+                per[f"base{name}"] = ((o["base"] - act[:, env.BASE]) ** 2).mean(-1)
+                per[f"grip_acc{name}"] = (o["grip_logits"].argmax(-1) == act[:, env.GRIP].round() + 1).float()
+            for k, v in per.items():
+                for s in ("all", *env.SKILLS):
+                    sel = v if s == "all" else v[label == env.SKILL_IDS[s]]
+                    sums.setdefault((s, k), []).append(sel)
+        table = {}
+        for (s, k), vs in sums.items():
+            v = torch.cat(vs)
+            table.setdefault(s, {"steps": len(v)})[k] = float(v.mean()) if len(v) else float("nan")
+        results[path] = table
+        cols = [k for k in table["all"] if k != "steps"]
+        print(f"\n{path} ({net.cfg.variant}) on {len(demos)} demos of {cfg.data}, {len(ends)} steps:\n"
+              f"| skill | steps | {' | '.join(cols)} |\n|---|---|{'---|' * len(cols)}")
+        for s, row in table.items():
+            print(f"| {s} | {row['steps']} | " + " | ".join(f"{row[k]:.4f}" for k in cols) + " |")
+        tmp = f"{stem(path)}.val.json.tmp{os.getpid()}"
+        with open(tmp, "w") as f:
+            json.dump({"data": cfg.data, "n_demos": len(demos), "per_skill": table}, f, indent=1)
+        os.replace(tmp, stem(path) + ".val.json")
+    return results
+
+
 # --- command line ---
 
 def parse_args(argv=None):
@@ -544,4 +603,5 @@ def parse_args(argv=None):
 
 
 if __name__ == "__main__":
-    train(parse_args())
+    args = parse_args()
+    validate(args) if args.validate else train(args)
