@@ -84,7 +84,7 @@ class ModelConfig:
     skill_first: bool = False
     """st/lstm: order each step's action tokens (z_t, a_{t-1}, x_t) and read the action from x_t's
     token, whose residual stream carries the observation; False: the paper's (x_t, a_{t-1}, z_t),
-    read from z_t's token, to which attention must first copy x_t (README, "The skill-token round")"""
+    read from z_t's token, to which attention must first copy x_t (README, "The skill-module round")"""
     detach_skill_input: bool = False
     """st/lstm: the skill and receptacle losses do not train the shared encoder (skill inference
     reads x_t.detach()); False: end to end, as the paper (Sec. 4.2)"""
