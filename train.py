@@ -261,10 +261,15 @@ def epoch_windows(lengths, cfg, epoch):
     (demo, end step)."""
     rng = np.random.default_rng([cfg.seed, epoch])
     chosen = rng.choice(len(lengths), size=min(cfg.demos_per_epoch, len(lengths)), replace=False)
-    ends = np.concatenate([np.stack([np.full(lengths[i], i), np.arange(lengths[i])], 1) for i in chosen])
+    ends = every_step(lengths, chosen)
     B = cfg.batch_size
     n = max(B, int(round(cfg.coverage * len(ends) / cfg.context)) // B * B)
     return ends[rng.choice(len(ends), size=n, replace=n > len(ends))]
+
+
+def every_step(lengths, demos):
+    """(n, 2) int array of (demo, step) for every step of the given demos, in order."""
+    return np.concatenate([np.stack([np.full(lengths[i], i), np.arange(lengths[i])], 1) for i in demos])
 
 
 BATCH_KEYS = ("depth", "state", "action", "prev_action", "skill", "receptacle", "rtg")
@@ -542,36 +547,37 @@ def validate(cfg):
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     demos, meta = load_demos(cfg.data, cfg.max_demos)
     flat, starts = flatten_demos(demos, "cpu")
-    ends = np.concatenate([np.stack([np.full(len(d["action"]), i), np.arange(len(d["action"]))], 1)
-                           for i, d in enumerate(demos)])
+    lengths = [len(d["action"]) for d in demos]
+    ends = every_step(lengths, range(len(demos)))
     results = {}
     for path in cfg.validate.split(","):
         ckpt = model.load_checkpoint(path)
         check_env_config(ckpt, meta, path, cfg.data)
         net = model.model_from_checkpoint(ckpt).eval()
-        sums = {}  # (skill label, metric) -> per-step values
+        per = {}  # metric -> per-step values, in the order of ends
         for i in range(0, len(ends), 512):
             b = get_batch(flat, starts, ends[i:i + 512], net.cfg.context)
             x = net.embed_obs(b["depth"], b["state"])
             label, act = b["skill"][:, -1], b["action"][:, -1]
-            z, per = {"": b["skill"]}, {}   # arm etc.: z = the true skills (or no z); arm_zpred etc.: predicted
+            z, m = {"": b["skill"]}, {}   # arm etc.: z = the true skills (or no z); arm_zpred etc.: predicted
             if net.has_skill_module:
                 z["_zpred"] = net.infer_skill(x, b["mask"])[0].argmax(-1)
-                per["skill_acc"] = (z["_zpred"][:, -1] == label).float()
+                m["skill_acc"] = (z["_zpred"][:, -1] == label).float()
             for name, zz in z.items():
                 o = {k: v[:, -1] for k, v in net.infer_action(x, b["prev_action"], b["mask"], skill=zz,
                                                               rtg=b["rtg"]).items()}
-                per[f"arm{name}"] = ((o["arm"] - act[:, env.ARM]) ** 2).mean(-1)
-                per[f"base{name}"] = ((o["base"] - act[:, env.BASE]) ** 2).mean(-1)
-                per[f"grip_acc{name}"] = (o["grip_logits"].argmax(-1) == act[:, env.GRIP].round() + 1).float()
-            for k, v in per.items():
-                for s in ("all", *env.SKILLS):
-                    sel = v if s == "all" else v[label == env.SKILL_IDS[s]]
-                    sums.setdefault((s, k), []).append(sel)
+                m[f"arm{name}"] = ((o["arm"] - act[:, env.ARM]) ** 2).mean(-1)
+                m[f"base{name}"] = ((o["base"] - act[:, env.BASE]) ** 2).mean(-1)
+                m[f"grip_acc{name}"] = (o["grip_logits"].argmax(-1) == act[:, env.GRIP].round() + 1).float()
+            for k, v in m.items():
+                per.setdefault(k, []).append(v)
+        per = {k: torch.cat(v) for k, v in per.items()}
+        labels = flat["skill"]   # ends runs over every step of every demo, in flat's order
         table = {}
-        for (s, k), vs in sums.items():
-            v = torch.cat(vs)
-            table.setdefault(s, {"steps": len(v)})[k] = float(v.mean()) if len(v) else float("nan")
+        for s in ("all", *env.SKILLS):
+            sel = torch.ones_like(labels, dtype=torch.bool) if s == "all" else labels == env.SKILL_IDS[s]
+            n = int(sel.sum())
+            table[s] = {"steps": n, **{k: float(v[sel].mean()) if n else float("nan") for k, v in per.items()}}
         results[path] = table
         cols = [k for k in table["all"] if k != "steps"]
         print(f"\n{path} ({net.cfg.variant}) on {len(demos)} demos of {cfg.data}, {len(ends)} steps:\n"
