@@ -13,6 +13,7 @@ So numbers are comparable across runs and do not depend on the number of workers
     python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
     python evaluate.py --policy ckpt/st.pt --difficulty easy --assist reach  # the expert's reaches
+    python evaluate.py --policy ckpt/st.pt --difficulty easy --handover pick # the policy from the pick on
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
@@ -80,6 +81,10 @@ class Config:
     assist: str = ""
     """reach: while a checkpoint predicts pick (target not held) or place (target held), the
     expert's closed-loop reach sets its arm and grip: what the rest of the policy achieves"""
+    handover: str = ""
+    """pick, place, open_drawer or open_fridge: the oracle expert acts until its plan first reaches
+    this skill, then the policy acts for the rest of the episode (it has seen every step, so its
+    context is full): what the policy does from the expert's hand-off; empty: the policy throughout"""
     plot: str = ""
     """draw Fig. 3 (success and picked per architecture, context length, number of demos) to this
     PNG; needs matplotlib; without --policy it redraws from the JSON at --out"""
@@ -221,6 +226,32 @@ class ReachAssist:
         return actions, skills
 
 
+class Handover:
+    """--handover SKILL: the oracle expert acts until its plan first reaches SKILL, then the policy
+    acts for the rest of the episode. The policy sees every observation from the first step (its
+    actions are dropped until then), so its context at the hand-off is that of the expert's steps."""
+
+    def __init__(self, policy, envs, skill):
+        self.policy, self.skill = policy, env.SKILL_IDS[skill]
+        self.experts = [expert.Expert(e) for e in envs]
+
+    def reset(self):
+        self.policy.reset()
+        for x in self.experts:
+            x.reset()
+        self.handed = [False] * len(self.experts)
+
+    def act_batch(self, obs, rewards):
+        actions, skills = self.policy.act_batch(obs, rewards)
+        for i, x in enumerate(self.experts):
+            if not self.handed[i]:
+                action, skill = x.act(obs[i], rewards[i])
+                self.handed[i] = skill == self.skill
+                if not self.handed[i]:
+                    actions[i] = action
+        return actions, skills
+
+
 class ExpertBatch:
     """One scripted expert per env of a lock-step batch, behind the Policy interface."""
 
@@ -252,11 +283,14 @@ def actor(ref, env_config, n=1):
 
 
 def rollout_job(job):
-    """Worker entry: job = (tags, ref, env_config, episodes, seeds, assist) -> list of tags + rollout result."""
-    tags, ref, env_config, episodes, seeds, assist = job
+    """Worker entry: job = (tags, ref, env_config, episodes, seeds, assist, handover) -> list of tags
+    + rollout result."""
+    tags, ref, env_config, episodes, seeds, assist, handover = job
     policy, envs = actor(ref, env_config, len(episodes))
     if assist == "reach" and not ref.startswith("expert:"):
         policy = ReachAssist(policy, envs)
+    if handover and not ref.startswith("expert:"):
+        policy = Handover(policy, envs, handover)
     return [dict(tags, **r) for r in rollout(policy, envs, episodes, seeds)]
 
 
@@ -488,11 +522,15 @@ def evaluate(cfg):
                          f"{cfg.workers}, {cfg.episodes}, {cfg.seeds}")
     if cfg.assist not in ("", "reach"):
         raise ValueError(f"--assist must be reach or empty, got {cfg.assist!r}")
+    if cfg.handover and cfg.handover not in env.SKILLS[1:]:
+        raise ValueError(f"--handover must be one of {env.SKILLS[1:]} or empty, got {cfg.handover!r}")
     splits = ["seen", "unseen"] if cfg.split == "both" else [cfg.split]
     methods = [parse_method(spec, cfg) for spec in cfg.policy]
     for m in methods:
         if cfg.assist and not m["spec"].startswith("expert:"):
             m["name"] += " + expert reach"
+        if cfg.handover and not m["spec"].startswith("expert:"):
+            m["name"] += f" from the expert's {cfg.handover}"
     conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
     episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty) for s in splits}
     # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list: the same
@@ -500,7 +538,7 @@ def evaluate(cfg):
     chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
     jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
              ref, dict(env_config, perturb=c == "perturb"), chunk, [reset_seed(s, ep.index, seed) for ep in chunk],
-             cfg.assist)
+             cfg.assist, cfg.handover)
             for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
             for s in splits for c in conditions for chunk in chunks[s]]
     n_total = sum(len(job[3]) for job in jobs)

@@ -345,6 +345,22 @@ def test_dagger_policy_drives_the_start_of_each_reach_and_the_expert_labels_it()
         assert len(steps) > np.sum(plain["skill"] == env.SKILL_IDS[name]), name
 
 
+def test_dagger_radius_hands_the_end_of_the_navigation_to_the_policy():
+    """collect.py --dagger-radius: for dagger_steps steps after the base comes within the radius of
+    the object, the env runs the policy's action (here: stand still) and the demo stores the
+    expert's, which drives on; then the expert drives from there and still solves the episode."""
+    e = env.RearrangeEnv(depth_size=8)
+    ep = _first("easy", lambda ep: True)
+    plain = collect.record_episode(e, ep, 0, 0.0)
+    data = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=20, dagger_radius=1.5)
+    assert plain["success"] and data["success"]
+    dist = data["state"][:, 24]                                       # obj_start_polar: distance
+    near = np.flatnonzero(dist < 1.5)[:25]
+    assert (data["skill"][near] == env.SKILL_IDS["navigate"]).all()
+    assert np.ptp(dist[near[3:20]]) < 0.02 and dist[near[24]] < dist[near[19]] - 0.02   # still, then on
+    assert np.abs(data["action"][near[:20], env.BASE]).max(1).min() > 0.05   # the expert's label: drive on
+
+
 class _SkillPolicy:
     """Stands in for a trained policy: always the same skill, a base command and a still arm."""
 
@@ -373,6 +389,27 @@ def test_reach_assist_takes_over_the_arm_of_a_predicted_pick_only():
             assert np.allclose(actions[0][env.ARM], want[env.ARM]) and actions[0][env.GRIP] == want[env.GRIP]
         else:
             assert not actions[0][env.ARM].any() and actions[0][env.GRIP] == 0, skill
+
+
+def test_handover_runs_the_expert_until_its_plan_reaches_the_skill():
+    """evaluate.py --handover pick: the oracle's actions until the first step of its pick, the
+    policy's from that step on."""
+    ep = _first("easy", lambda ep: True)
+    envs = [env.RearrangeEnv(depth_size=8) for _ in range(2)]
+    obs = [e.reset(seed=0, options={"episode": ep})[0] for e in envs]
+    policy = evaluate.Handover(_SkillPolicy(env.SKILL_IDS["navigate"]), envs[:1], "pick")
+    policy.reset()
+    twin = expert.Expert(envs[1])                                     # the same expert on a twin env
+    twin.reset()
+    for t in range(800):
+        (action,), _ = policy.act_batch(obs[:1], [0.0])
+        want, skill = twin.act(obs[1])
+        if skill == env.SKILL_IDS["pick"]:
+            break
+        np.testing.assert_array_equal(action, want)
+        obs = [e.step(a)[0] for e, a in zip(envs, (action, want))]
+    assert skill == env.SKILL_IDS["pick"] and t > 20                  # the expert drove to the pick ...
+    assert np.allclose(action[env.BASE], [0.3, 0.1]) and not action[env.ARM].any()   # ... the policy picks
 
 
 def test_is_holding_covers_a_grasped_handle():
@@ -627,6 +664,8 @@ def test_collect_with_a_policy(checkpoints, tmp_path):
     assert again.returncode != 0 and "policy" in again.stderr        # resuming needs the same policy
     bad = collect_run(tmp_path / "x", 1, "--policy", tmp_path / "none.pt", check=False)
     assert bad.returncode != 0 and "checkpoint not found" in bad.stderr
+    bad = collect_run(tmp_path / "x", 1, "--dagger-radius", 1.5, check=False)
+    assert bad.returncode != 0 and "--dagger-radius must be >= 0 and needs --policy" in bad.stderr
     bad = collect_run(tmp_path / "y", 1, "--policy", checkpoints[0], check=False)   # max_steps 1500 vs 25
     assert bad.returncode != 0 and "max_steps" in bad.stderr
 
@@ -656,6 +695,10 @@ def test_evaluate_with_the_experts_reach(checkpoints, tmp_path):
     assert res["methods"][0]["name"] == f"st ({checkpoints[0]}) + expert reach" and len(res["rollouts"]) == 2
     bad = run("evaluate.py", "--policy", checkpoints[0], "--assist", "arm", "--out", out, check=False)
     assert bad.returncode != 0 and "--assist must be reach" in bad.stderr
+    run("evaluate.py", "--policy", checkpoints[0], "--episodes", 2, "--workers", 1, "--handover", "pick", "--out", out)
+    assert json.loads(out.read_text())["methods"][0]["name"] == f"st ({checkpoints[0]}) from the expert's pick"
+    bad = run("evaluate.py", "--policy", checkpoints[0], "--handover", "navigate", "--out", out, check=False)
+    assert bad.returncode != 0 and "--handover must be one of" in bad.stderr
 
 
 def test_evaluate_checkpoint_errors(tmp_path):
