@@ -15,7 +15,7 @@ So numbers are comparable across runs and do not depend on the number of workers
     python evaluate.py --policy ckpt/st.pt --difficulty easy --assist reach  # the expert's reaches
     python evaluate.py --policy ckpt/st.pt --difficulty easy --handover pick # the policy from the pick on
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
-    python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \
+    python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \\
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
 
 Table 1 (Sec. 5.3): success rate in % on All, Easy, Hard and Very Hard episodes. With one checkpoint
@@ -546,6 +546,8 @@ def evaluate(cfg):
           f"{cfg.batch}, {cfg.workers} workers", flush=True)
     rollouts, t0, last_log = [], time.time(), time.time()
     pool = mp.get_context("spawn").Pool(cfg.workers, initializer=init_worker) if cfg.workers > 1 else None
+    if pool is None:
+        init_worker()   # in-process too: torch's default of every core fights a training beside it
     try:
         for batch in (pool.imap_unordered(rollout_job, jobs) if pool else map(rollout_job, jobs)):
             rollouts += batch
