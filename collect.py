@@ -11,7 +11,8 @@ policy led to: the expert's reach is closed loop (expert.Expert._approach), so i
 With `--dagger-radius R` it also drives the first `--dagger-steps` steps of each navigation to a pick
 or place after its base comes within R m of the object or the goal: the hand-off into a skill,
 where a learned policy loses most (README, "The hand-off round"). The expert's path following and
-settle label those steps and then take over from where the policy left the base.
+settle label those steps and then take over from where the policy left the base; `--dagger-open`
+does the same for each navigation to a drawer or the fridge.
 
     python collect.py --episodes 1000 --out data/demos --workers 2 --seed 0
     python collect.py --episodes 1000 --out data/v3 --noise 0.1 --nav-noise 0.2 --jitter 0.2
@@ -19,6 +20,7 @@ settle label those steps and then take over from where the policy left the base.
     python collect.py --episodes 1000 --out data/demos --shard 1/2      # machine B: same DIR layout
     python collect.py --episodes 300 --out data/v7d --seed 1 --policy ckpt/v7_s0.pt   # DAgger
     python collect.py --episodes 300 --out data/v8h --seed 1 --policy ckpt/st.pt --dagger-radius 1.5
+    python collect.py --episodes 300 --out data/v8o --seed 1 --policy ckpt/st.pt --dagger-radius 1.5 --dagger-open
     python collect.py --stats data/demos
 
 Determinism: episode index k always runs `env.make_episodes("train", ..., seed=S)[k]` with a reset
@@ -79,6 +81,9 @@ class Config:
     dagger_radius: float = 0.0
     """m: the --policy also drives the first dagger_steps steps of each navigation to a pick or place
     after its base comes within this distance of the object or the goal (0: the reaches alone)"""
+    dagger_open: bool = False
+    """with --dagger-radius: also each navigation to a drawer or the fridge, within that distance of
+    where the base stands to open it (the hand-off into the openings)"""
     keep_failed: bool = False
     """also keep demonstrations in which the expert failed"""
     shard: str = "0/1"
@@ -100,7 +105,7 @@ EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
 TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.\d+\.tmp$")   # ep_k.npz.<pid>.tmp
 # meta.json entries that must agree before new episodes are added to an existing directory
 MUST_MATCH = ("format", "env_config", "seed", "noise", "nav_noise", "jitter", "keep_failed", "plan",
-              "policy", "dagger_steps", "dagger_radius")
+              "policy", "dagger_steps", "dagger_radius", "dagger_open")
 
 
 def episode_path(out, k):
@@ -163,22 +168,28 @@ def load_episode(path):
 _worker_env, _worker_policy = {}, {}   # per process: simulator and policy, built on the first job
 
 
-def nearing_reach(x, radius):
+def nearing_reach(x, radius, opening=False):
     """DAgger --dagger-radius: is the expert navigating to a pick or place, its base within radius
-    (m) of the object or the goal? (Its current skill is the navigation before x.steps[0].)"""
-    if radius <= 0 or x.skill != env.SKILL_IDS["navigate"] or not x.steps or x.steps[0][0] not in ("pick", "place"):
+    (m) of the object or the goal? With opening (--dagger-open) also: to an opening, its base within
+    radius of where it stands to open? (Its current skill is the navigation before x.steps[0].)"""
+    kinds = ("pick", "place", "open") if opening else ("pick", "place")
+    if radius <= 0 or x.skill != env.SKILL_IDS["navigate"] or not x.steps or x.steps[0][0] not in kinds:
         return False
-    p = x.p
-    point = p["objects"][p["target"]] if x.steps[0][0] == "pick" else p["goal"]
-    return bool(np.hypot(*(point[:2] - p["base"][:2])) < radius)
+    p, (kind, arg) = x.p, x.steps[0]
+    if kind == "open":
+        point = p["poses"]["fridge_door" if env.RECEPTACLES[arg] == "fridge" else "cabinet"]
+    else:
+        point = p["objects"][p["target"]] if kind == "pick" else p["goal"]
+    return bool(np.hypot(*(np.asarray(point[:2]) - p["base"][:2])) < radius)
 
 
 def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0, policy=None, dagger_steps=0,
-                   dagger_radius=0.0):
+                   dagger_radius=0.0, dagger_open=False):
     """Run the oracle expert on one episode -> dict of arrays in the file format. With a policy
     (model.Policy), it executes its own action in the first dagger_steps steps of each pick and
     place reach and, with dagger_radius > 0, in the first dagger_steps steps of each navigation to
-    them within that radius (nearing_reach); the stored action is always the expert's."""
+    them (with dagger_open, and to each opening) within that radius (nearing_reach); the stored
+    action is always the expert's."""
     x = expert.Expert(e, plan="oracle", seed=seed, noise=noise, nav_noise=nav_noise, jitter=jitter)
     obs, info = e.reset(seed=seed, options={"episode": episode})
     x.reset()
@@ -197,7 +208,7 @@ def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0, policy=No
         executed = x.noisy(action)
         if policy is not None:
             learned, _ = policy.act(obs, reward)  # every step: its context is the whole episode
-            near = nearing_reach(x, dagger_radius)
+            near = nearing_reach(x, dagger_radius, dagger_open)
             if near:
                 nearing[len(x.steps)] = nearing.get(len(x.steps), 0) + 1
             if 0 <= x.reach_step < dagger_steps or near and nearing[len(x.steps)] <= dagger_steps:
@@ -213,7 +224,7 @@ def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0, policy=No
 
 def collect_job(job):
     """Worker entry: record episode k to a temporary file -> (temporary path, success, steps)."""
-    k, episode, seed, noise, nav_noise, jitter, env_kwargs, out, policy, dagger_steps, dagger_radius = job
+    k, episode, seed, noise, nav_noise, jitter, env_kwargs, out, policy, dagger_steps, dagger_radius, dagger_open = job
     key = json.dumps(env_kwargs, sort_keys=True)
     if key not in _worker_env:
         _worker_env.clear()
@@ -222,7 +233,7 @@ def collect_job(job):
         torch.set_num_threads(1)                        # one core per worker process
         _worker_policy[policy] = model.load_policy(policy)
     data = record_episode(_worker_env[key], episode, seed, noise, nav_noise, jitter,
-                          _worker_policy.get(policy), dagger_steps, dagger_radius)
+                          _worker_policy.get(policy), dagger_steps, dagger_radius, dagger_open)
     tmp = f"{episode_path(out, k)}.{os.getpid()}.tmp"   # per process: an orphaned worker of a killed
     with open(tmp, "wb") as f:                          # run cannot write into this run's file
         np.savez_compressed(f, **data)                  # (a file object: savez adds no suffix)
@@ -257,6 +268,7 @@ def make_meta(cfg, env_kwargs):
         "keep_failed": cfg.keep_failed,
         **({"policy": cfg.policy, "dagger_steps": cfg.dagger_steps} if cfg.policy else {}),   # older metas lack them
         **({"dagger_radius": cfg.dagger_radius} if cfg.policy and cfg.dagger_radius else {}),
+        **({"dagger_open": True} if cfg.dagger_open else {}),
         "versions": {"python": platform.python_version(), "numpy": np.__version__,
                      "mujoco": mujoco.__version__},
     }
@@ -364,6 +376,9 @@ def collect(cfg):
     if cfg.dagger_radius < 0 or cfg.dagger_radius and not cfg.policy:
         raise ValueError(f"--dagger-radius must be >= 0 and needs --policy, got {cfg.dagger_radius} "
                          f"with --policy {cfg.policy!r}")
+    if cfg.dagger_open and not cfg.dagger_radius:
+        raise ValueError("--dagger-open needs --dagger-radius R > 0 (and --policy): the radius around "
+                         f"each opening pose in which the policy drives, got {cfg.dagger_radius}")
     if cfg.policy:
         check_policy(cfg.policy, env_kwargs)
     os.makedirs(cfg.out, exist_ok=True)
@@ -392,7 +407,7 @@ def collect(cfg):
                     pending.append((k, None))
                     continue
                 job = (k, episode, seed, cfg.noise, cfg.nav_noise, cfg.jitter, env_kwargs, cfg.out,
-                       cfg.policy, cfg.dagger_steps, cfg.dagger_radius)
+                       cfg.policy, cfg.dagger_steps, cfg.dagger_radius, cfg.dagger_open)
                 pending.append((k, pool.apply_async(collect_job, (job,)) if pool else job))
             k, work = pending.popleft()
             if work is None:

@@ -361,6 +361,29 @@ def test_dagger_radius_hands_the_end_of_the_navigation_to_the_policy():
     assert np.abs(data["action"][near[:20], env.BASE]).max(1).min() > 0.05   # the expert's label: drive on
 
 
+def test_dagger_open_hands_the_end_of_the_navigation_to_an_opening_to_the_policy():
+    """collect.py --dagger-open: the same hand-off for each navigation to a drawer or the fridge. The
+    policy (here: stand still) holds the base for dagger_steps steps near the opening pose while the
+    labels drive on; without the flag it never drives before the first opening. The expert solves both."""
+    e = env.RearrangeEnv(depth_size=8)
+    ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
+
+    def still_driving(data):   # longest run of steps before the first opening: base still, label driving
+        first_open = np.flatnonzero(data["skill"] == env.SKILL_IDS["open_drawer"])[0]
+        polar, base = data["state"][:first_open, 24:26], np.abs(data["action"][:first_open, env.BASE]).max(1)
+        run = best = 0
+        for t in range(1, first_open):
+            run = run + 1 if np.abs(polar[t] - polar[t - 1]).max() < 1e-3 and base[t] > 0.05 else 0
+            best = max(best, run)
+        return best
+
+    plain = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=20, dagger_radius=1.5)
+    data = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=20, dagger_radius=1.5,
+                                  dagger_open=True)
+    assert plain["success"] and data["success"]
+    assert still_driving(plain) < 3 and still_driving(data) >= 12   # of 20: the base first slows down
+
+
 class _SkillPolicy:
     """Stands in for a trained policy: always the same skill, a base command and a still arm."""
 
@@ -666,6 +689,8 @@ def test_collect_with_a_policy(checkpoints, tmp_path):
     assert bad.returncode != 0 and "checkpoint not found" in bad.stderr
     bad = collect_run(tmp_path / "x", 1, "--dagger-radius", 1.5, check=False)
     assert bad.returncode != 0 and "--dagger-radius must be >= 0 and needs --policy" in bad.stderr
+    bad = collect_run(tmp_path / "x", 1, "--policy", checkpoints[0], "--dagger-open", check=False)
+    assert bad.returncode != 0 and "--dagger-open needs --dagger-radius" in bad.stderr
     bad = collect_run(tmp_path / "y", 1, "--policy", checkpoints[0], check=False)   # max_steps 1500 vs 25
     assert bad.returncode != 0 and "max_steps" in bad.stderr
 
