@@ -105,7 +105,7 @@ EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
 TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.\d+\.tmp$")   # ep_k.npz.<pid>.tmp
 # meta.json entries that must agree before new episodes are added to an existing directory
 MUST_MATCH = ("format", "env_config", "seed", "noise", "nav_noise", "jitter", "keep_failed", "plan",
-              "policy", "dagger_steps", "dagger_radius", "dagger_open")
+              "policy", "dagger_steps", "dagger_radius", "dagger_open", "release_zone")
 
 
 def episode_path(out, k):
@@ -266,6 +266,7 @@ def make_meta(cfg, env_kwargs):
         "nav_noise": cfg.nav_noise,
         "jitter": cfg.jitter,
         "keep_failed": cfg.keep_failed,
+        "release_zone": expert.RELEASE_ZONE,   # the place's release label; older metas lack it
         **({"policy": cfg.policy, "dagger_steps": cfg.dagger_steps} if cfg.policy else {}),   # older metas lack them
         **({"dagger_radius": cfg.dagger_radius} if cfg.policy and cfg.dagger_radius else {}),
         **({"dagger_open": True} if cfg.dagger_open else {}),
