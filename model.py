@@ -7,10 +7,7 @@ transformer over the interleaved tokens (x_t, a_{t-1}, z_t), predicts the whole-
 and base means and a 3-way grip distribution. Training uses the true skills as z (teacher forcing,
 Sec. 4.2); a rollout feeds the predicted ones. With ModelConfig.prev_action=False (train.py's
 default) the a_{t-1} tokens are left out: with them the policy learns to copy its last action
-(the copycat problem of behaviour cloning from histories; README, "Results"). With
-ModelConfig.chunk = K > 1 every step predicts the next K actions and a rollout averages the K
-predictions made for the current step (action chunking with temporal ensembling, Zhao et al. 2023;
-not in the paper: README, "The chunk round").
+(the copycat problem of behaviour cloning from histories; README, "Results").
 
 Baselines (Sec. 5.2, Sec. 5.5, Appendix C.2), chosen by ModelConfig.variant:
     st        Skill Transformer
@@ -23,7 +20,6 @@ Nothing here runs on its own; it is imported:
     python train.py --data data/demos --out ckpt/st.pt             # trains a model
     python -c "import model; p = model.load_policy('ckpt/st.pt')"  # p.act(obs) -> action, skill
 """
-import math
 import os
 from dataclasses import dataclass
 
@@ -43,9 +39,6 @@ NEAR_FIELDS = ("obj_start", "goal")
 _offsets = np.cumsum([0] + [n for _, n in env.STATE_LAYOUT])
 NEAR_INDEX = [i for (name, n), o in zip(env.STATE_LAYOUT, _offsets) if name in NEAR_FIELDS for i in range(o, o + n)]
 ENCODERS = ("cnn", "resnet18")
-# Temporal ensembling of chunked actions (Zhao et al. 2023, "ACT"): the K predictions made for the
-# current step are averaged with weights exp(-m * i), i = 0 for the oldest; ACT's m = 0.01.
-ENSEMBLE_DECAY = 0.01
 
 
 @dataclass
@@ -95,9 +88,6 @@ class ModelConfig:
     detach_skill_input: bool = False
     """st/lstm: the skill and receptacle losses do not train the shared encoder (skill inference
     reads x_t.detach()); False: end to end, as the paper (Sec. 4.2)"""
-    chunk: int = 1
-    """actions predicted per step, a_t..a_{t+K-1} (action chunking, Zhao et al. 2023; not in the
-    paper), averaged over the last K predictions in a rollout (ENSEMBLE_DECAY); 1: the paper's a_t"""
 
 
 # --- observation encoders (Sec. 4.1 "Input") ---
@@ -239,8 +229,6 @@ class SkillTransformer(nn.Module):
             raise ValueError(f"variant must be one of {VARIANTS}, got {cfg.variant!r}")
         if cfg.encoder not in ENCODERS:
             raise ValueError(f"encoder must be one of {ENCODERS}, got {cfg.encoder!r}")
-        if cfg.chunk < 1:
-            raise ValueError(f"chunk must be >= 1, got {cfg.chunk}")
         if cfg.d_model % cfg.n_head:
             raise ValueError(f"d_model ({cfg.d_model}) must be divisible by n_head ({cfg.n_head})")
         self.cfg = cfg
@@ -269,14 +257,13 @@ class SkillTransformer(nn.Module):
             self.rtg_emb = nn.Linear(1, cfg.d_model)
         if v == "dt_skill":
             self.skill_head = nn.Linear(cfg.d_model, cfg.n_skills)  # auxiliary skill loss (Appendix C.2)
-        # Action Inference (Sec. 4.1): 12 outputs = 7 arm means, 2 base means, 3 grip logits, for
-        # each of the K steps of a chunk.
+        # Action Inference (Sec. 4.1): 12 outputs = 7 arm means, 2 base means, 3 grip logits.
         if cfg.prev_action:
             self.act_emb = nn.Linear(env.ACTION_DIM, cfg.d_model)
         self.action_net = Backbone(cfg)
-        self.arm_head = nn.Linear(cfg.d_model, cfg.chunk * (env.ARM.stop - env.ARM.start))
-        self.base_head = nn.Linear(cfg.d_model, cfg.chunk * (env.BASE.stop - env.BASE.start))
-        self.grip_head = nn.Linear(cfg.d_model, cfg.chunk * len(env.GRIP_VALUES))
+        self.arm_head = nn.Linear(cfg.d_model, env.ARM.stop - env.ARM.start)
+        self.base_head = nn.Linear(cfg.d_model, env.BASE.stop - env.BASE.start)
+        self.grip_head = nn.Linear(cfg.d_model, len(env.GRIP_VALUES))
         self.apply(self._init_weights)
 
     @staticmethod
@@ -307,9 +294,8 @@ class SkillTransformer(nn.Module):
 
     def infer_action(self, x, prev_action, mask, skill=None, rtg=None, last_only=False):
         """Action Inference. x (B, T, D), prev_action a_{t-1} (B, T, 10), mask (B, T) bool,
-        skill z_t ids (B, T) for st/lstm, rtg (B, T) for dt -> dict of per-step outputs: "arm"
-        (B, T, K, 7), "base" (B, T, K, 2), "grip_logits" (B, T, K, 3) for a_t..a_{t+K-1} (K = chunk),
-        and "skill_logits" (B, T, n_skills) for dt_skill; T = 1 with last_only (the current step)."""
+        skill z_t ids (B, T) for st/lstm, rtg (B, T) for dt -> dict of per-step outputs (B, T, .),
+        or of the current step alone (B, 1, .) with last_only."""
         v, (B, T, D) = self.cfg.variant, x.shape
         a = (self.act_emb(prev_action),) if self.cfg.prev_action else ()  # without it: (x_t, z_t) etc.
         if v in ("st", "lstm"):
@@ -324,9 +310,7 @@ class SkillTransformer(nn.Module):
         # The last token of step t has seen x_{<=t}, a_{<=t-1} (and z_{<=t}): it predicts a_t.
         h = self.action_net(seq.view(B, T * len(toks), D), last_only)
         h = h if last_only else h.view(B, T, len(toks), D)[:, :, -1]
-        K = self.cfg.chunk
-        out = {"arm": self.arm_head(h).unflatten(-1, (K, -1)), "base": self.base_head(h).unflatten(-1, (K, -1)),
-               "grip_logits": self.grip_head(h).unflatten(-1, (K, -1))}
+        out = {"arm": self.arm_head(h), "base": self.base_head(h), "grip_logits": self.grip_head(h)}
         if v == "dt_skill":
             out["skill_logits"] = self.skill_head(h)
         return out
@@ -343,17 +327,14 @@ class SkillTransformer(nn.Module):
 
     def compute_loss(self, out, batch):
         """Sec. 4.2: focal loss (skills, grip) + MSE (arm, base) + CE (aux), unweighted sum, each
-        averaged over the valid (unpadded) steps of the window; the action terms also over the K
-        steps of each chunk that lie inside the demo (batch["action_chunk"] (B, T, K, 10) and
-        batch["chunk_mask"] (B, T, K), from train.get_batch). Returns a dict with "loss"."""
-        m, mc = batch["mask"].float(), batch["chunk_mask"].float()
+        averaged over the valid (unpadded) steps of the window. Returns a dict with "loss"."""
+        m = batch["mask"].float()
         mean = lambda l: (l * m).sum() / m.sum().clamp(min=1.0)
-        mean_c = lambda l: (l * mc).sum() / mc.sum().clamp(min=1.0)
-        act = batch["action_chunk"]
+        act = batch["action"]
         grip_target = act[..., env.GRIP].round().long() + 1  # release/keep/grasp -> 0/1/2
-        losses = {"arm": mean_c(((out["arm"].float() - act[..., env.ARM]) ** 2).mean(-1)),
-                  "base": mean_c(((out["base"].float() - act[..., env.BASE]) ** 2).mean(-1)),
-                  "grip": mean_c(focal_loss(out["grip_logits"], grip_target))}
+        losses = {"arm": mean(((out["arm"].float() - act[..., env.ARM]) ** 2).mean(-1)),
+                  "base": mean(((out["base"].float() - act[..., env.BASE]) ** 2).mean(-1)),
+                  "grip": mean(focal_loss(out["grip_logits"], grip_target))}
         if "skill_logits" in out:
             losses["skill"] = mean(focal_loss(out["skill_logits"], batch["skill"]))  # Eq. 1
         if "aux_logits" in out:
@@ -409,10 +390,7 @@ class Policy:
 
     Per step only the new observation is encoded (past tokens x_t are cached in a rolling,
     left-padded window); the transformers then run over the window, with the *predicted* skills
-    as z tokens, and only the current step's outputs are computed in the last layer. A model
-    that predicts chunks of K actions acts on the weighted mean of the K predictions made for the
-    current step (temporal ensembling, ENSEMBLE_DECAY; the grip's argmax of the mean of their
-    probabilities), so that each step still reacts to the newest observation. With
+    as z tokens, and only the current step's outputs are computed in the last layer. With
     batch=B it acts for B episodes at once (evaluate.py's lock-step rollouts): on a CPU a step
     costs about the same for 8 episodes as for 1, as the small network is bound by per-op overhead."""
 
@@ -437,12 +415,6 @@ class Policy:
         self.rtg = torch.zeros(B, C, device=dev)                           # R_t (dt variants)
         self.mask = torch.zeros(B, C, dtype=torch.bool, device=dev)        # False = padding
         self.last_action = torch.zeros(B, env.ACTION_DIM, device=dev)
-        # Running sums of the predictions for steps t..t+K-1 (slot 0: the current step) and of their
-        # weights; each step multiplies them by e^m, which gives the older predictions more weight.
-        K = self.cfg.chunk
-        self.ahead = torch.zeros(B, K, env.ACTION_DIM - 1, device=dev)   # arm and base means
-        self.ahead_grip = torch.zeros(B, K, len(env.GRIP_VALUES), device=dev)  # grip probabilities
-        self.ahead_w = torch.zeros(B, K, 1, device=dev)
         self.return_to_go = torch.full((B,), self.rtg_max, device=dev)  # Appendix C.2: the max return of the demos
         self.t = 0
 
@@ -481,16 +453,9 @@ class Policy:
                                       last_only=True)
         if "skill_logits" in out:
             skills = out["skill_logits"][:, -1].argmax(-1)
-        grow = math.exp(ENSEMBLE_DECAY)
-        self.ahead = self.ahead * grow + torch.cat([out["arm"][:, -1], out["base"][:, -1]], dim=-1)
-        self.ahead_grip = self.ahead_grip * grow + out["grip_logits"][:, -1].softmax(-1)
-        self.ahead_w = self.ahead_w * grow + 1.0
-        grip = out["arm"].new_tensor(env.GRIP_VALUES)[self.ahead_grip[:, 0].argmax(-1)]
+        grip = out["arm"].new_tensor(env.GRIP_VALUES)[out["grip_logits"][:, -1].argmax(-1)]
         # ARM, BASE, GRIP are action[0:7], [7:9], [9]; means clipped to the action box
-        action = torch.cat([self.ahead[:, 0] / self.ahead_w[:, 0], grip[:, None]], dim=1).clamp(-1, 1)
-        for name in ("ahead", "ahead_grip", "ahead_w"):  # slot 0 is spent: the next step's moves up
-            setattr(self, name, torch.roll(getattr(self, name), -1, dims=1))
-            getattr(self, name)[:, -1] = 0.0
+        action = torch.cat([out["arm"][:, -1], out["base"][:, -1], grip[:, None]], dim=1).clamp(-1, 1)
         self.last_action = action
         self.t += 1
         return action.cpu().numpy().astype(np.float32), skills.tolist()

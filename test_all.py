@@ -7,7 +7,6 @@ import dataclasses
 import glob
 import itertools
 import json
-import math
 import os
 import re
 import shutil
@@ -844,12 +843,9 @@ def random_batch(cfg, B=2, T=None, seed=0):
     S = cfg.depth_size
     action = torch.rand(B, T, env.ACTION_DIM, generator=g) * 2 - 1
     action[..., env.GRIP] = torch.randint(-1, 2, (B, T), generator=g).float()
-    ahead = torch.arange(T)[:, None] + torch.arange(cfg.chunk)          # (T, K): the window is the demo
-    chunk_mask = (ahead < T).expand(B, T, cfg.chunk)
     return {"depth": torch.rand(B, T, 1, S, S, generator=g),
             "state": torch.randn(B, T, env.STATE_DIM, generator=g),
             "prev_action": torch.rand(B, T, env.ACTION_DIM, generator=g) * 2 - 1, "action": action,
-            "action_chunk": action[:, ahead.clamp(max=T - 1)] * chunk_mask[..., None], "chunk_mask": chunk_mask,
             "skill": torch.randint(0, cfg.n_skills, (B, T), generator=g),
             "receptacle": torch.randint(0, cfg.n_receptacles, (B, T), generator=g),
             "rtg": torch.randn(B, T, generator=g), "mask": torch.ones(B, T, dtype=torch.bool)}
@@ -887,8 +883,8 @@ def trained(tmp_path_factory):
 def test_output_shapes(variant):
     cfg = model.ModelConfig(depth_size=16, context=6, variant=variant, **TINY)
     out = model.SkillTransformer(cfg)(random_batch(cfg, B=3))
-    assert out["arm"].shape == (3, 6, 1, 7) and out["base"].shape == (3, 6, 1, 2)
-    assert out["grip_logits"].shape == (3, 6, 1, 3)
+    assert out["arm"].shape == (3, 6, 7) and out["base"].shape == (3, 6, 2)
+    assert out["grip_logits"].shape == (3, 6, 3)
     assert ("skill_logits" in out) == (variant in ("st", "lstm", "dt_skill"))
     if "skill_logits" in out:
         assert out["skill_logits"].shape == (3, 6, 5)
@@ -913,7 +909,7 @@ def test_state_hidden_mlp_and_checkpoints_without_it(tmp_path):
     cfg = model.ModelConfig(depth_size=16, context=4, state_hidden=24, **TINY)
     net = model.SkillTransformer(cfg)
     assert [m.out_features for m in net.state_mlp if isinstance(m, torch.nn.Linear)] == [24, 24, cfg.d_state]
-    assert net(random_batch(cfg, B=2))["arm"].shape == (2, 4, 1, 7)
+    assert net(random_batch(cfg, B=2))["arm"].shape == (2, 4, 7)
     old, args, path = save_checkpoint_without(tmp_path, "state_hidden")
     mlp = model.load_policy(path).model.state_mlp
     assert [m.out_features for m in mlp if isinstance(m, torch.nn.Linear)] == [old.d_state, old.d_state]
@@ -932,7 +928,7 @@ def test_near_features_feed_the_reach_targets_at_centimetre_scale(tmp_path):
     seen = []
     net.state_mlp.register_forward_hook(lambda m, inp, out: seen.append(inp[0]))
     batch = random_batch(cfg, B=2)
-    assert net(batch)["arm"].shape == (2, 4, 1, 7)
+    assert net(batch)["arm"].shape == (2, 4, 7)
     x = seen[-1]
     assert x.shape == (2, 4, env.STATE_DIM + 6)
     assert torch.allclose(x[..., :env.STATE_DIM], (batch["state"] - net.state_mean) / net.state_std)
@@ -1020,50 +1016,7 @@ def test_padding_matches_rollout(skill_first):
     with torch.no_grad():
         out = net({"depth": depth, "state": state, "prev_action": prev, "skill": skill, "mask": mask})
     assert int(out["skill_logits"][0, -1].argmax()) == actions[-1][1]
-    np.testing.assert_allclose(out["arm"][0, -1, 0].clamp(-1, 1).numpy(), actions[-1][0][:7], atol=1e-5)
-
-
-def test_chunked_policy_averages_the_predictions_for_the_current_step(tmp_path, monkeypatch):
-    """chunk K: the heads predict a_t..a_{t+K-1}; a rollout acts on the exp(-m i)-weighted mean
-    (i = 0 the oldest) of the K predictions made for the current step, the grip on the argmax of
-    their mean probabilities; chunk 1 acts on a_t alone, and a checkpoint without the field has K = 1."""
-    K, C = 3, 6
-    monkeypatch.setattr(model, "ENSEMBLE_DECAY", 0.5)   # unequal weights, so that their order shows
-    cfg = model.ModelConfig(depth_size=16, context=C, chunk=K, **TINY)
-    net = model.SkillTransformer(cfg).eval()
-    assert net(random_batch(cfg, B=2))["arm"].shape == (2, C, K, 7)
-    policy = model.Policy(net, {"depth_size": 16}, rtg_max=1.0)
-    rng = np.random.default_rng(0)
-    obs = [fake_obs(rng, 16) for _ in range(5)]
-    actions = [policy.act(o) for o in obs]
-    def outputs_at(s):   # the model's outputs at step s, from the right-aligned window a rollout sees
-        batch = {"depth": torch.zeros(1, C, 1, 16, 16), "state": torch.zeros(1, C, env.STATE_DIM),
-                 "prev_action": torch.zeros(1, C, env.ACTION_DIM), "skill": torch.zeros(1, C, dtype=torch.long),
-                 "mask": torch.tensor([[False] * (C - 1 - s) + [True] * (s + 1)])}
-        for i in range(s + 1):
-            j = C - 1 - s + i
-            batch["depth"][0, j, 0] = torch.from_numpy(env.depth_to_uint8(obs[i]["depth"])).float() / 255
-            batch["state"][0, j] = torch.from_numpy(env.state_vector(obs[i]))
-            batch["skill"][0, j] = actions[i][1]
-            if i:
-                batch["prev_action"][0, j] = torch.from_numpy(actions[i - 1][0])
-        with torch.no_grad():
-            return {k: v[0, -1] for k, v in net(batch).items()}
-
-    t = 4   # the last step: predictions from steps 2, 3, 4 at offsets 2, 1, 0
-    w = torch.tensor([math.exp(-model.ENSEMBLE_DECAY * i) for i in range(K)])
-    outs = [outputs_at(s) for s in (2, 3, 4)]
-    pred = torch.stack([o["arm"][t - s] for o, s in zip(outs, (2, 3, 4))])
-    np.testing.assert_allclose(actions[t][0][:7], ((w[:, None] * pred).sum(0) / w.sum()).clamp(-1, 1).numpy(),
-                               atol=1e-5)
-    probs = torch.stack([o["grip_logits"][t - s].softmax(-1) for o, s in zip(outs, (2, 3, 4))])
-    assert actions[t][0][9] == env.GRIP_VALUES[int((w[:, None] * probs).sum(0).argmax())]
-    # at step 0 only step 0's prediction exists
-    np.testing.assert_allclose(actions[0][0][:7], outputs_at(0)["arm"][0].clamp(-1, 1).numpy(), atol=1e-5)
-    old, args, path = save_checkpoint_without(tmp_path, "chunk")
-    assert model.load_policy(path).model.cfg.chunk == 1
-    with pytest.raises(ValueError, match="chunk"):
-        model.SkillTransformer(model.ModelConfig(chunk=0, **TINY))
+    np.testing.assert_allclose(out["arm"][0, -1].clamp(-1, 1).numpy(), actions[-1][0][:7], atol=1e-5)
 
 
 def test_prev_action_off_ignores_a_t_minus_1():
@@ -1124,7 +1077,6 @@ def test_every_variant_trains_one_step(variant):
     net = model.SkillTransformer(cfg)
     batch = random_batch(cfg)
     batch["mask"][0, :3] = False  # left padding
-    batch["chunk_mask"][0, :3] = False
     losses = net.compute_loss(net(batch), batch)
     assert set(losses) >= {"loss", "arm", "base", "grip"} and torch.isfinite(losses["loss"])
     assert ("skill" in losses) == (variant in ("st", "lstm", "dt_skill"))
@@ -1141,7 +1093,7 @@ def test_resnet18_encoder():
     cfg = model.ModelConfig(depth_size=32, context=2, encoder="resnet18", **TINY)
     net = model.SkillTransformer(cfg)
     assert 10e6 < net.num_params() < 13e6
-    assert net(random_batch(cfg, B=1))["arm"].shape == (1, 2, 1, 7)
+    assert net(random_batch(cfg, B=1))["arm"].shape == (1, 2, 7)
 
 
 # --- train.py ---
@@ -1171,16 +1123,6 @@ def test_windows_and_padding(tmp_path):
     np.testing.assert_array_equal(batch["prev_action"][1, -1].numpy(), demos[1]["action"][29])
     assert batch["prev_action"][0, 5].abs().sum() == 0  # a_{-1} = 0 at the episode start
     assert batch["rtg"][1, -1] == pytest.approx(demos[1]["reward"][30:].sum(), rel=1e-5)
-    # chunks of K = 3: a_t..a_{t+2}, masked past the demo's end and on the padding
-    T = len(demos[1]["action"])
-    batch = train.get_batch(flat, starts, np.array([[0, 2], [1, T - 2]]), 8, chunk=3)
-    assert batch["action_chunk"].shape == (2, 8, 3, env.ACTION_DIM)
-    assert batch["chunk_mask"][0, 4].tolist() == [False] * 3 and batch["chunk_mask"][0, 5].all()
-    np.testing.assert_array_equal(batch["action_chunk"][0, 5].numpy(), demos[0]["action"][0:3])
-    assert batch["chunk_mask"][1, -1].tolist() == [True, True, False]
-    np.testing.assert_array_equal(batch["action_chunk"][1, -1, :2].numpy(), demos[1]["action"][T - 2:])
-    assert batch["action_chunk"][1, -1, 2].abs().sum() == 0
-    torch.testing.assert_close(batch["action_chunk"][:, :, 0], batch["action"])
 
 
 def test_segments_cut_nav_pick_and_nav_place(tmp_path):

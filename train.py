@@ -65,9 +65,6 @@ class TrainConfig:
     (model.ModelConfig.skill_first); False: the paper's (x_t, a_{t-1}, z_t)"""
     detach_skill_input: bool = False
     """st/lstm: the skill and receptacle losses do not train the shared encoder"""
-    chunk: int = 1
-    """actions predicted per step, a_t..a_{t+K-1}, ensembled in rollouts (model.ModelConfig.chunk;
-    action chunking, not in the paper); 1: the paper's a_t alone"""
     n_layer: int = 2
     """layers per transformer (Sec. 4.1)"""
     n_head: int = 4
@@ -288,26 +285,18 @@ def flatten_demos(demos, device):
     return flat, torch.as_tensor(starts, device=device)
 
 
-def get_batch(flat, starts, windows, C, chunk=1):
+def get_batch(flat, starts, windows, C):
     """Windows (B, 2) of (demo, end step) -> batch of (B, C, ...) tensors. A window that would start
     before step 0 is left-padded with zeros; mask marks the real steps, and padding is left out of
-    every loss. action_chunk (B, C, K, 10) holds a_t..a_{t+K-1} of each step (K = chunk), and
-    chunk_mask (B, C, K) marks those that lie inside the demo."""
-    dev = starts.device
-    windows = torch.as_tensor(windows, device=dev)
-    t = windows[:, 1:] + torch.arange(1 - C, 1, device=dev)             # (B, C) steps of the demo
+    every loss."""
+    windows = torch.as_tensor(windows, device=starts.device)
+    t = windows[:, 1:] + torch.arange(1 - C, 1, device=starts.device)   # (B, C) steps of the demo
     mask = t >= 0
-    first = starts[windows[:, 0]][:, None]
-    idx = first + t.clamp(min=0)                                        # (B, C) rows of flat
+    idx = starts[windows[:, 0]][:, None] + t.clamp(min=0)               # (B, C) rows of flat
     batch = {k: flat[k][idx] * mask.view(*mask.shape, *[1] * (flat[k].dim() - 1)) for k in BATCH_KEYS}
     B, S = mask.shape[0], flat["depth"].shape[-1]
     batch["depth"] = batch["depth"].float().div_(255.0).view(B, C, 1, S, S)  # (B, T, 1, H, W) in [0, 1]
     batch["mask"] = mask
-    length = torch.diff(starts, append=starts.new_tensor([len(flat["action"])]))[windows[:, 0]]
-    ahead = t[..., None] + torch.arange(chunk, device=dev)              # (B, C, K) steps of the demo
-    batch["chunk_mask"] = mask[..., None] & (ahead < length[:, None, None])
-    rows = first[..., None] + ahead.clamp(min=0).minimum(length[:, None, None] - 1)
-    batch["action_chunk"] = flat["action"][rows] * batch["chunk_mask"][..., None]
     return batch
 
 
@@ -413,7 +402,6 @@ def train(cfg):
                               d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
                               d_model=cfg.d_model, state_hidden=cfg.state_hidden, near_scale=cfg.near_scale,
                               skill_first=cfg.skill_first, detach_skill_input=cfg.detach_skill_input,
-                              chunk=cfg.chunk,
                               n_layer=cfg.n_layer, n_head=cfg.n_head,
                               dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant,
                               prev_action=cfg.action_dropout < 1)
@@ -487,7 +475,7 @@ def train(cfg):
             for g in opt.param_groups:
                 g["lr"] = lr
             mine = windows[it * cfg.batch_size + rank * B:it * cfg.batch_size + (rank + 1) * B]
-            batch = get_batch(flat, starts, mine, cfg.context, cfg.chunk)
+            batch = get_batch(flat, starts, mine, cfg.context)
             if 0 < cfg.action_dropout < 1:
                 keep = torch.rand(batch["mask"].shape, device=device) >= cfg.action_dropout
                 batch["prev_action"] = batch["prev_action"] * keep[..., None]
@@ -576,8 +564,8 @@ def validate(cfg):
                 z["_zpred"] = net.infer_skill(x, b["mask"])[0].argmax(-1)
                 m["skill_acc"] = (z["_zpred"][:, -1] == label).float()
             for name, zz in z.items():
-                o = {k: v[:, -1, 0] for k, v in net.infer_action(x, b["prev_action"], b["mask"], skill=zz,
-                                                                 rtg=b["rtg"]).items() if k != "skill_logits"}
+                o = {k: v[:, -1] for k, v in net.infer_action(x, b["prev_action"], b["mask"], skill=zz,
+                                                              rtg=b["rtg"]).items()}
                 m[f"arm{name}"] = ((o["arm"] - act[:, env.ARM]) ** 2).mean(-1)
                 m[f"base{name}"] = ((o["base"] - act[:, env.BASE]) ** 2).mean(-1)
                 m[f"grip_acc{name}"] = (o["grip_logits"].argmax(-1) == act[:, env.GRIP].round() + 1).float()
