@@ -3,37 +3,44 @@
 Runs the privileged oracle expert of `expert.py` (our stand-in for the paper's M3 (Oracle)
 data-generating policy, Appendix C.1) on `train` episodes in parallel worker processes and records,
 per step, what the paper records: observations, actions, rewards and the executing skill. The
-expert executes DART-noised actions (`--noise` per step, `--nav-noise` a drifting turn rate,
-`--jitter` navigation that ends off its mark) but the clean action is stored as the label.
-With `--policy CKPT` (DAgger, Ross et al. 2011) a trained policy drives the first `--dagger-steps`
-steps of every pick and place reach, and the label is still the expert's action in the state the
-policy led to: the expert's reach is closed loop (expert.Expert._approach), so it has a label there.
-With `--dagger-radius R` it also drives the first `--dagger-steps` steps of each navigation to a pick
-or place after its base comes within R m of the object or the goal: the hand-off into a skill,
-where a learned policy loses most (README, "The hand-off round"). The expert's path following and
-settle label those steps and then take over from where the policy left the base; `--dagger-open`
-does the same for each navigation to a drawer or the fridge.
+stored action is always the expert's clean label for the state the step shows. Three ways to show
+a learner states off the expert's own path, and the way back from them:
+
+- DART (Laskey et al. 2017): the env executes the expert's action plus noise, `--noise` per step
+  on the arm (and the base while navigating) and `--nav-noise` a drifting turn rate.
+- Perturbation events (`--events R`, R per 1,000 steps): a receptacle that stands open is shut, the
+  base is pushed aside, or the held target is dropped onto the surface under it; the expert is a
+  function of the state, so it opens, drives or picks again, and the demo shows it.
+- DAgger (Ross et al. 2011, `--policy CKPT`): a trained policy drives, the expert labels every
+  state it leads to. Episodes are cut into segments of `--segment` steps; each segment is driven
+  by the expert (its noised action) with probability `--beta`, else by the policy (beta 0, the
+  default: the policy drives every step). The policy sees every step, whoever drives: its context
+  is the whole episode. Every episode is kept, solved or not: its labels are valid either way.
+  Train on the union with the expert's demos (train.py --data DIR,DIR).
 
     python collect.py --episodes 1000 --out data/demos --workers 2 --seed 0
-    python collect.py --episodes 1000 --out data/v3 --noise 0.1 --nav-noise 0.2 --jitter 0.2
+    python collect.py --episodes 1000 --out data/dart --noise 0.1 --nav-noise 0.2 --events 2
     python collect.py --episodes 1000 --out data/demos --shard 0/2      # machine A
     python collect.py --episodes 1000 --out data/demos --shard 1/2      # machine B: same DIR layout
-    python collect.py --episodes 300 --out data/v7d --seed 1 --policy ckpt/v7_s0.pt   # DAgger
-    python collect.py --episodes 300 --out data/v8h --seed 1 --policy ckpt/st.pt --dagger-radius 1.5
-    python collect.py --episodes 300 --out data/v8o --seed 1 --policy ckpt/st.pt --dagger-radius 1.5 --dagger-open
+    python collect.py --episodes 300 --out data/dagger --seed 1 --policy ckpt/st.pt       # DAgger
+    python collect.py --episodes 300 --out data/dagger_mix --seed 1 --policy ckpt/st.pt --beta 0.5
     python collect.py --stats data/demos
 
-Determinism: episode index k always runs `env.make_episodes("train", ..., seed=S)[k]` with a reset
-seed derived from (S, k), so a file's bytes never depend on the worker count. Without
-`--keep-failed` only successful demonstrations are written: indices are judged in order and the
-first N successes are kept (a shard i/n takes the indices k = i (mod n) and its share of N).
-Files are written to a temporary name and renamed, so rerunning the same command after a kill
-resumes where it stopped.
+(EXPERIMENTS.md records the earlier DART and DAgger rounds and what they did to the learned policies.)
 
-File format (readable with `numpy.load(path, allow_pickle=False)`), T steps:
-    depth uint8 (T, H, W), state float32 (T, 21), action float32 (T, 10) clean expert action,
+Determinism: episode index k always runs `env.make_episodes("train", ..., seed=S)[k]` with a reset
+seed derived from (S, k), and the noise, the events and the DAgger segments draw from generators
+seeded by that reset seed, so a file's bytes never depend on the worker count. Without
+`--keep-failed` (or `--policy`) only successful demonstrations are written: indices are judged in
+order and the first N successes are kept (a shard i/n takes the indices k = i (mod n) and its share
+of N). Files are written to a temporary name and renamed, so rerunning the same command after a
+kill resumes where it stopped.
+
+File format 2 (readable with `numpy.load(path, allow_pickle=False)`), T steps:
+    depth uint8 (T, H, W), state float32 (T, 30), action float32 (T, 10) clean expert action,
     skill int8 (T,), receptacle int8 (T,) auxiliary label of the observed state,
     reward float32 (T,) reward received after the action;
+    events int64 (3,) perturbation events of the episode: shut, push, drop (EVENTS);
     scalars: success bool, layout int, difficulty str, seed int (reset seed), index int.
 """
 import argparse
@@ -61,7 +68,7 @@ import model
 @dataclass
 class Config:
     episodes: int = 1000
-    """number of demonstrations to write (successful ones unless --keep-failed)"""
+    """number of demonstrations to write (successful ones unless --keep-failed or --policy)"""
     out: str = "data/demos"
     """output directory: ep_{k:06d}.npz files and meta.json"""
     workers: int = 2
@@ -71,19 +78,15 @@ class Config:
     noise: float = 0.0
     """DART noise scale injected into the executed actions (the stored action stays clean)"""
     nav_noise: float = 0.0
-    """DART drift of the executed turn rate while following a path (expert.Expert's nav_noise)"""
-    jitter: float = 0.0
-    """DART: navigation to a pick or place ends up to this many rad off facing its point"""
+    """DART drift of the executed turn rate while navigating (expert.Expert's nav_noise)"""
+    events: float = 0.0
+    """expected perturbation events per 1,000 steps (shut an open receptacle, push the base, drop the held target)"""
     policy: str = ""
-    """DAgger: this train.py checkpoint drives the first dagger_steps steps of each pick and place reach"""
-    dagger_steps: int = 60
-    """steps of each reach the --policy drives before the expert takes over (its labels throughout)"""
-    dagger_radius: float = 0.0
-    """m: the --policy also drives the first dagger_steps steps of each navigation to a pick or place
-    after its base comes within this distance of the object or the goal (0: the reaches alone)"""
-    dagger_open: bool = False
-    """with --dagger-radius: also each navigation to a drawer or the fridge, within that distance of
-    where the base stands to open it (the hand-off into the openings)"""
+    """DAgger: this train.py checkpoint drives, the expert labels every step; keeps every episode, solved or not"""
+    beta: float = 0.0
+    """DAgger: probability that the expert (noised) drives a segment instead of the --policy (0: the policy drives all)"""
+    segment: int = 10
+    """DAgger: steps per segment; who drives is drawn at the start of each"""
     keep_failed: bool = False
     """also keep demonstrations in which the expert failed"""
     shard: str = "0/1"
@@ -100,12 +103,12 @@ class Config:
     """print statistics of the dataset in this directory and exit"""
 
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2   # 2 adds the events array
 EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
 TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.\d+\.tmp$")   # ep_k.npz.<pid>.tmp
 # meta.json entries that must agree before new episodes are added to an existing directory
-MUST_MATCH = ("format", "env_config", "seed", "noise", "nav_noise", "jitter", "keep_failed", "plan",
-              "policy", "dagger_steps", "dagger_radius", "dagger_open", "release_zone")
+MUST_MATCH = ("format", "env_config", "seed", "noise", "nav_noise", "events", "keep_failed", "plan",
+              "policy", "beta", "segment", "release_zone")
 
 
 def episode_path(out, k):
@@ -119,6 +122,7 @@ def reset_seed(seed, k):
 
 # --- validation ---
 
+EVENTS = ("shut", "push", "drop")
 STEP_ARRAYS = {"depth": np.uint8, "state": np.float32, "action": np.float32,
                "skill": np.int8, "receptacle": np.int8, "reward": np.float32}
 TRAILING_SHAPE = {"state": (env.STATE_DIM,), "action": (env.ACTION_DIM,),
@@ -133,9 +137,10 @@ def load_episode(path):
             data = {k: f[k] for k in f.files}
     except Exception as err:  # zip, zlib, pickle or OS errors all mean the same thing here
         raise ValueError(f"{path}: not a readable demonstration .npz ({type(err).__name__}: {err})") from err
-    missing = sorted((set(STEP_ARRAYS) | set(SCALARS)) - set(data))
+    missing = sorted((set(STEP_ARRAYS) | set(SCALARS) | {"events"}) - set(data))
     if missing:
-        raise ValueError(f"{path}: missing keys {missing}; not a demonstration written by collect.py")
+        raise ValueError(f"{path}: missing keys {missing}; not a demonstration written by collect.py "
+                         f"(format {FORMAT_VERSION})")
     T = len(data["action"]) if data["action"].ndim else 0
     if T < 1:
         raise ValueError(f"{path}: expected at least one step, got action of shape {data['action'].shape}")
@@ -152,6 +157,10 @@ def load_episode(path):
         if data[key].shape != () or data[key].dtype.kind not in kinds:
             raise ValueError(f"{path}: {key} should be a scalar of kind {kinds!r}, "
                              f"got shape {data[key].shape} dtype {data[key].dtype}")
+    ev = data["events"]
+    if ev.shape != (len(EVENTS),) or ev.dtype.kind not in "iu" or (ev < 0).any():
+        raise ValueError(f"{path}: events should be {len(EVENTS)} counts >= 0 ({', '.join(EVENTS)}), "
+                         f"got shape {ev.shape} dtype {ev.dtype}")
     if not (0 <= data["skill"].min() and data["skill"].max() < len(env.SKILLS)):
         raise ValueError(f"{path}: skill ids outside [0, {len(env.SKILLS)})")
     if not (0 <= data["receptacle"].min() and data["receptacle"].max() <= len(env.RECEPTACLES)):
@@ -163,80 +172,116 @@ def load_episode(path):
     return data
 
 
+# --- perturbation events ---
+
+SHUT_OPEN = 0.3            # a receptacle open more than this fraction can be shut ...
+SHUT_CLEAR = 0.5           # m: ... while the cup is farther than this from its handle and not over
+                           # its furniture (an arm reaching into the fridge is far from the door's handle)
+PUSH_DIST = (0.1, 0.3)     # m: a push moves the base this far, in a direction drawn uniformly,
+PUSH_YAW = 0.3             # rad: and turns it by up to this much either way
+DROP_CLEAR = env.ROBOT_RADIUS + 0.05   # m: the held target is dropped only this far from the base
+                                       # centre (never onto the robot) and above a surface or receptacle
+
+
+def applicable_events(e, x):
+    """The events that apply to the current state -> {kind: its choices} (for shut: the receptacles).
+    x (expert.Expert) has acted on this state; its _support names the place under a point, so that a
+    receptacle is not shut on the arm and the target is dropped above a surface or a receptacle."""
+    p = e.privileged()
+    over = x._support(p["ee"])
+    cabinet = over.startswith("drawer")                  # the drawers are stacked: over one is near both
+    shut = [k for k, r in enumerate(env.RECEPTACLES)
+            if p["open_fraction"][k] > SHUT_OPEN and np.linalg.norm(p["ee"] - p["handles"][k]) > SHUT_CLEAR
+            and over != r and not (cabinet and r.startswith("drawer"))]
+    push = p["handle"] < 0    # a base pushed while the cup holds a handle tears at the weld: a collision
+    obj = p["objects"][p["target"]]
+    under = x._support(obj)   # a drawer's region reaches out over its travel: it must stand open
+    drop = (p["held"] == p["target"] and under != "floor" and np.hypot(*(obj[:2] - p["base"][:2])) > DROP_CLEAR
+            and (not under.startswith("drawer") or p["open_fraction"][env.RECEPTACLES.index(under)] > SHUT_OPEN))
+    return {kind: choices for kind, choices in zip(EVENTS, (shut, [None] * bool(push), [None] * bool(drop))) if choices}
+
+
+def perturb(e, x, rng):
+    """One event, its kind drawn uniformly among those that apply now -> its index in EVENTS, or None
+    when none applies or the push drawn would put the base into the scene (env.push_base refuses it)."""
+    events = applicable_events(e, x)
+    if not events:
+        return None
+    kind = list(events)[rng.integers(len(events))]
+    if kind == "shut":
+        e.close_receptacle(events["shut"][rng.integers(len(events["shut"]))])
+    elif kind == "push":
+        dist, angle, dyaw = rng.uniform(*PUSH_DIST), rng.uniform(-np.pi, np.pi), rng.uniform(-PUSH_YAW, PUSH_YAW)
+        if not e.push_base(dist * np.cos(angle), dist * np.sin(angle), dyaw):
+            return None
+    else:
+        e.drop()
+    return EVENTS.index(kind)
+
+
 # --- one episode (runs in a worker) ---
 
 _worker_env, _worker_policy = {}, {}   # per process: simulator and policy, built on the first job
 
 
-def nearing_reach(x, radius, opening=False):
-    """DAgger --dagger-radius: is the expert navigating to a pick or place, its base within radius
-    (m) of the object or the goal? With opening (--dagger-open) also: to an opening, its base within
-    radius of where it stands to open? (Its current skill is the navigation before x.steps[0].)"""
-    kinds = ("pick", "place", "open") if opening else ("pick", "place")
-    if radius <= 0 or x.skill != env.SKILL_IDS["navigate"] or not x.steps or x.steps[0][0] not in kinds:
-        return False
-    p, (kind, arg) = x.p, x.steps[0]
-    if kind == "open":
-        point = p["poses"]["fridge_door" if env.RECEPTACLES[arg] == "fridge" else "cabinet"]
-    else:
-        point = p["objects"][p["target"]] if kind == "pick" else p["goal"]
-    return bool(np.hypot(*(np.asarray(point[:2]) - p["base"][:2])) < radius)
-
-
-def record_episode(e, episode, seed, noise, nav_noise=0.0, jitter=0.0, policy=None, dagger_steps=0,
-                   dagger_radius=0.0, dagger_open=False):
-    """Run the oracle expert on one episode -> dict of arrays in the file format. With a policy
-    (model.Policy), it executes its own action in the first dagger_steps steps of each pick and
-    place reach and, with dagger_radius > 0, in the first dagger_steps steps of each navigation to
-    them (with dagger_open, and to each opening) within that radius (nearing_reach); the stored
-    action is always the expert's."""
-    x = expert.Expert(e, plan="oracle", seed=seed, noise=noise, nav_noise=nav_noise, jitter=jitter)
+def record_episode(e, episode, seed, noise=0.0, nav_noise=0.0, events=0.0, policy=None, beta=0.0, segment=10):
+    """Run one episode -> dict of arrays in the file format; the stored action is always the oracle
+    expert's clean label. Executed: the expert's DART-noised action, or with a policy (model.Policy)
+    its action in the segments of `segment` steps that the expert (probability beta) does not drive.
+    Before a step, with probability events / 1000, a perturbation event (perturb) changes the state."""
+    x = expert.Expert(e, plan="oracle", seed=seed, noise=noise, nav_noise=nav_noise)
     obs, info = e.reset(seed=seed, options={"episode": episode})
     x.reset()
     if policy is not None:
         policy.reset()
+    # two streams of the reset seed: the events drawn do not depend on whether a policy drives
+    drive_rng, event_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
     steps = {k: [] for k in STEP_ARRAYS}
-    reward, done = 0.0, False
-    nearing = {}                                          # plan step (steps left) -> steps near its point
+    counts = np.zeros(len(EVENTS), np.int64)
+    reward, done, expert_drives, t = 0.0, False, True, 0
     while not done:
-        action, skill = x.act(obs, reward)
+        action, skill = x.act(obs)
         steps["depth"].append(env.depth_to_uint8(obs["depth"]))
         steps["state"].append(env.state_vector(obs))
         steps["action"].append(action)
         steps["skill"].append(skill)
         steps["receptacle"].append(info["receptacle"])   # label of the state this obs shows
-        executed = x.noisy(action)
+        executed = x.noisy(action)                        # every step, whoever drives: the noise runs on
         if policy is not None:
-            learned, _ = policy.act(obs, reward)  # every step: its context is the whole episode
-            near = nearing_reach(x, dagger_radius, dagger_open)
-            if near:
-                nearing[len(x.steps)] = nearing.get(len(x.steps), 0) + 1
-            if 0 <= x.reach_step < dagger_steps or near and nearing[len(x.steps)] <= dagger_steps:
+            learned, _ = policy.act(obs, reward)          # every step: its context is the whole episode
+            if t % segment == 0:
+                expert_drives = drive_rng.random() < beta
+            if not expert_drives:
                 executed = learned
+        # the event strikes after this step's observation and label, so both show the same state
+        if events > 0 and event_rng.random() < events / 1000:
+            kind = perturb(e, x, event_rng)
+            if kind is not None:
+                counts[kind] += 1
         obs, reward, terminated, truncated, info = e.step(executed)
         steps["reward"].append(reward)
-        done = terminated or truncated
+        done, t = terminated or truncated, t + 1
     data = {k: np.asarray(v, dtype=STEP_ARRAYS[k]) for k, v in steps.items()}
-    data.update(success=np.bool_(info["success"]), layout=np.int64(episode.layout),
+    data.update(events=counts, success=np.bool_(info["success"]), layout=np.int64(episode.layout),
                 difficulty=np.str_(episode.difficulty), seed=np.int64(seed), index=np.int64(episode.index))
     return data
 
 
 def collect_job(job):
     """Worker entry: record episode k to a temporary file -> (temporary path, success, steps)."""
-    k, episode, seed, noise, nav_noise, jitter, env_kwargs, out, policy, dagger_steps, dagger_radius, dagger_open = job
+    k, episode, seed, cfg, env_kwargs = job
     key = json.dumps(env_kwargs, sort_keys=True)
     if key not in _worker_env:
         _worker_env.clear()
         _worker_env[key] = env.RearrangeEnv(**env_kwargs)
-    if policy and policy not in _worker_policy:
+    if cfg.policy and cfg.policy not in _worker_policy:
         torch.set_num_threads(1)                        # one core per worker process
-        _worker_policy[policy] = model.load_policy(policy)
-    data = record_episode(_worker_env[key], episode, seed, noise, nav_noise, jitter,
-                          _worker_policy.get(policy), dagger_steps, dagger_radius, dagger_open)
-    tmp = f"{episode_path(out, k)}.{os.getpid()}.tmp"   # per process: an orphaned worker of a killed
-    with open(tmp, "wb") as f:                          # run cannot write into this run's file
-        np.savez_compressed(f, **data)                  # (a file object: savez adds no suffix)
+        _worker_policy[cfg.policy] = model.load_policy(cfg.policy)
+    data = record_episode(_worker_env[key], episode, seed, cfg.noise, cfg.nav_noise, cfg.events,
+                          _worker_policy.get(cfg.policy), cfg.beta, cfg.segment)
+    tmp = f"{episode_path(cfg.out, k)}.{os.getpid()}.tmp"   # per process: an orphaned worker of a killed
+    with open(tmp, "wb") as f:                              # run cannot write into this run's file
+        np.savez_compressed(f, **data)                      # (a file object: savez adds no suffix)
     return tmp, bool(data["success"]), len(data["action"])
 
 
@@ -264,12 +309,12 @@ def make_meta(cfg, env_kwargs):
         "seed": cfg.seed,
         "noise": cfg.noise,
         "nav_noise": cfg.nav_noise,
-        "jitter": cfg.jitter,
-        "keep_failed": cfg.keep_failed,
-        "release_zone": expert.RELEASE_ZONE,   # the place's release label; older metas lack it
-        **({"policy": cfg.policy, "dagger_steps": cfg.dagger_steps} if cfg.policy else {}),   # older metas lack them
-        **({"dagger_radius": cfg.dagger_radius} if cfg.policy and cfg.dagger_radius else {}),
-        **({"dagger_open": True} if cfg.dagger_open else {}),
+        "events": cfg.events,
+        "keep_failed": cfg.keep_failed or bool(cfg.policy),   # a DAgger set keeps every episode
+        "release_zone": expert.RELEASE_ZONE,                   # the place's release label
+        "policy": cfg.policy or None,                          # DAgger: null for the expert's own demos
+        "beta": cfg.beta if cfg.policy else None,
+        "segment": cfg.segment if cfg.policy else None,
         "versions": {"python": platform.python_version(), "numpy": np.__version__,
                      "mujoco": mujoco.__version__},
     }
@@ -374,12 +419,14 @@ def collect(cfg):
     need = cfg.episodes // shard_n + (shard_i < cfg.episodes % shard_n)
     max_draws = cfg.max_draws or 10 * need + 20
     env_kwargs = env_kwargs_of(cfg)
-    if cfg.dagger_radius < 0 or cfg.dagger_radius and not cfg.policy:
-        raise ValueError(f"--dagger-radius must be >= 0 and needs --policy, got {cfg.dagger_radius} "
-                         f"with --policy {cfg.policy!r}")
-    if cfg.dagger_open and not cfg.dagger_radius:
-        raise ValueError("--dagger-open needs --dagger-radius R > 0 (and --policy): the radius around "
-                         f"each opening pose in which the policy drives, got {cfg.dagger_radius}")
+    keep_all = cfg.keep_failed or bool(cfg.policy)   # DAgger: the labels are valid, solved or not
+    if not 0 <= cfg.events <= 1000:
+        raise ValueError(f"--events is a rate per 1,000 steps in [0, 1000], got {cfg.events}")
+    if not (0 <= cfg.beta <= 1 and cfg.segment >= 1):
+        raise ValueError(f"--beta must be in [0, 1] and --segment >= 1, got {cfg.beta} and {cfg.segment}")
+    if not cfg.policy and (cfg.beta, cfg.segment) != (Config.beta, Config.segment):
+        raise ValueError(f"--beta and --segment mix a --policy's actions with the expert's; "
+                         f"got --beta {cfg.beta} --segment {cfg.segment} without --policy")
     if cfg.policy:
         check_policy(cfg.policy, env_kwargs)
     os.makedirs(cfg.out, exist_ok=True)
@@ -407,8 +454,7 @@ def collect(cfg):
                     check_existing(cfg.out, k, have[k], episode, seed)
                     pending.append((k, None))
                     continue
-                job = (k, episode, seed, cfg.noise, cfg.nav_noise, cfg.jitter, env_kwargs, cfg.out,
-                       cfg.policy, cfg.dagger_steps, cfg.dagger_radius, cfg.dagger_open)
+                job = (k, episode, seed, cfg, env_kwargs)
                 pending.append((k, pool.apply_async(collect_job, (job,)) if pool else job))
             k, work = pending.popleft()
             if work is None:
@@ -416,12 +462,12 @@ def collect(cfg):
             else:
                 tmp, success, n_steps = work.get() if pool else collect_job(work)
                 ran, ran_success, steps = ran + 1, ran_success + success, steps + n_steps
-                if success or cfg.keep_failed:
+                if success or keep_all:
                     os.replace(tmp, episode_path(cfg.out, k))   # atomic: a file is whole or absent
                 else:
                     os.remove(tmp)
-            kept += success or cfg.keep_failed
-            kept_here += work is not None and (success or cfg.keep_failed)
+            kept += success or keep_all
+            kept_here += work is not None and (success or keep_all)
             now = time.time()
             if now - last_log >= cfg.log_every or kept == need:
                 last_log, minutes = now, max(now - t0, 1e-9) / 60
@@ -439,10 +485,24 @@ def collect(cfg):
 
 # --- statistics ---
 
+STILL = 0.02     # an action label is "still" when every arm and base command is below this, grip keep
+STILL_END = 30   # ... counted outside an episode's last 30 steps (after the place the expert rests)
+
+
+def still_steps(action):
+    """(T,) bool: labels that move nothing, the arm and base commands under STILL and the grip at keep.
+    A learner copies them as stalls; outside the episode's end they should be rare."""
+    return ((np.abs(action[:, env.ARM]).max(1) < STILL) & (np.abs(action[:, env.BASE]).max(1) < STILL)
+            & (action[:, env.GRIP] == 0))
+
+
 def dataset_stats(out):
-    """Summary of a dataset directory (every file validated) -> dict."""
+    """Summary of a dataset directory (every file validated) -> dict. still_share: the share of the
+    steps before each episode's last STILL_END whose label is still (still_steps)."""
     names = sorted(n for n in os.listdir(out) if n.endswith(".npz"))
     skills = np.zeros(len(env.SKILLS), np.int64)
+    events = np.zeros(len(EVENTS), np.int64)
+    still = early = 0
     by_diff = {d: [0, 0] for d in env.DIFFICULTIES}
     lengths, size = [], sum(os.path.getsize(os.path.join(out, n)) for n in os.listdir(out))
     for name in names:
@@ -454,6 +514,9 @@ def dataset_stats(out):
         by_diff[str(data["difficulty"])][0] += 1
         by_diff[str(data["difficulty"])][1] += bool(data["success"])
         lengths.append(len(data["action"]))
+        events += data["events"]
+        head = data["action"][:-STILL_END]
+        still, early = still + int(still_steps(head).sum()), early + len(head)
     n = len(names)
     return {"episodes": n, "steps": int(sum(lengths)),
             "steps_min_mean_max": [min(lengths, default=0), float(np.mean(lengths)) if n else 0.0,
@@ -461,6 +524,8 @@ def dataset_stats(out):
             "skill_steps": {s: int(c) for s, c in zip(env.SKILLS, skills)},
             "success": sum(v[1] for v in by_diff.values()) / max(n, 1),
             "by_difficulty": {d: {"episodes": v[0], "success": v[1] / max(v[0], 1)} for d, v in by_diff.items()},
+            "still_share": still / max(early, 1),
+            "events_per_episode": {k: float(v) / max(n, 1) for k, v in zip(EVENTS, events)},
             "bytes": size}
 
 
@@ -473,6 +538,9 @@ def print_stats(out):
     print("skill steps: " + ", ".join(f"{k} {v} ({100 * v / total:.1f}%)" for k, v in s["skill_steps"].items()))
     for d, v in s["by_difficulty"].items():
         print(f"  {d:9s} {v['episodes']:6d} episodes, success {100 * v['success']:.1f}%")
+    print(f"still labels (|arm|, |base| < {STILL}, grip keep) outside the last {STILL_END} steps: "
+          f"{100 * s['still_share']:.1f}% of those steps")
+    print("events per episode: " + ", ".join(f"{k} {v:.2f}" for k, v in s["events_per_episode"].items()))
     print(f"size on disk {s['bytes'] / 2**20:.1f} MiB ({s['bytes'] / 2**10 / max(s['episodes'], 1):.0f} KiB/episode)")
     return s
 
@@ -498,7 +566,8 @@ if __name__ == "__main__":
             print_stats(cfg.stats)
         else:
             print(f"collecting {cfg.episodes} demonstrations into {cfg.out} "
-                  f"(shard {cfg.shard}, {cfg.workers} workers, seed {cfg.seed}, noise {cfg.noise}, nav noise {cfg.nav_noise}, jitter {cfg.jitter})", flush=True)
+                  f"(shard {cfg.shard}, {cfg.workers} workers, seed {cfg.seed}, noise {cfg.noise}, nav noise {cfg.nav_noise}, events {cfg.events}"
+                  + (f", policy {cfg.policy}, beta {cfg.beta}, segment {cfg.segment})" if cfg.policy else ")"), flush=True)
             r = collect(cfg)
             print(f"done: {r['kept']} demonstrations in {cfg.out}; ran {r['ran']} episodes "
                   f"({r['ran_success']} successful) in {r['seconds'] / 60:.1f} min", flush=True)

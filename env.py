@@ -30,8 +30,8 @@ RECEPTACLES = ("drawer_0", "drawer_1", "fridge")   # auxiliary label i = RECEPTA
 DIFFICULTIES = ("easy", "hard", "very_hard")
 KINDS = ("easy", "object_closed", "goal_closed", "very_hard")   # hard = object_closed or goal_closed
 STATE_LAYOUT = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3),
-                ("goal", 3), ("obj_start_polar", 2), ("goal_polar", 2))
-STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 28
+                ("goal", 3), ("obj_start_polar", 3), ("goal_polar", 3))
+STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 30
 # joint_target is not in the paper's observation: the arm action moves the servo set-point, which
 # leads the measured joints by ~0.1 rad while the arm moves: the expert's arm label depends on it.
 # (Adding it did not lower the learned arm's loss: README, "Results".)
@@ -489,8 +489,8 @@ class RearrangeEnv:
     | ee_rest         | (3,)      | end effector minus its rest position, base frame, m         | ~[-1, 1]  |
     | obj_start       | (3,)      | target's START position minus end effector, base frame, m   | room      |
     | goal            | (3,)      | goal minus end effector, base frame, m                      | room      |
-    | obj_start_polar | (2,)      | target start from the base: distance m, angle rad           | room, ±pi |
-    | goal_polar      | (2,)      | goal from the base: distance m, angle rad                   | room, ±pi |
+    | obj_start_polar | (3,)      | target start from the base: distance m, sin and cos of its bearing | room, [-1, 1] |
+    | goal_polar      | (3,)      | goal from the base: distance m, sin and cos of its bearing  | room, [-1, 1] |
 
     Action (float32, shape (10,); values in range are clipped to the bounds):
 
@@ -745,24 +745,59 @@ class RearrangeEnv:
         self._open_steps += 1
         if self._open_steps < self.config.perturb_after:
             return
-        m, d, ids = self.model, self.data, self.ids
-        if self._handle == r - 1:
-            d.eq_active[ids["rec_eq"][r - 1]] = 0
-            self._handle = -1
-        b = ids["rec_body"][r - 1]
-        rmat_old, rpos_old = d.xmat[b].reshape(3, 3).copy(), d.xpos[b].copy()
-        inside = [k for k in range(N_OBJECTS) if k != self._held and self.episode.object_places[k] == RECEPTACLES[r - 1]]
-        local = {k: rmat_old.T @ (d.xpos[ids["obj_body"][k]] - rpos_old) for k in inside}
-        d.qpos[ids["rec_q"][r - 1]] = 0.0
-        d.qvel[ids["rec_v"][r - 1]] = 0.0
-        mujoco.mj_kinematics(m, d)
-        for k in inside:                        # objects in a drawer move with it
-            q = ids["obj_q"][k]
-            if r - 1 < 2:
-                d.qpos[q:q + 3] = d.xpos[b] + d.xmat[b].reshape(3, 3) @ local[k]
-            d.qvel[ids["obj_v"][k]:ids["obj_v"][k] + 6] = 0.0
-        mujoco.mj_forward(m, d)
+        self.close_receptacle(r - 1)
         self._perturbed = True
+
+    # --- perturbation events (the Sec. 5.4 test, and collect.py's recoveries) ---
+
+    def close_receptacle(self, k):
+        """Shut RECEPTACLES[k] at once, letting go of its handle; objects in a drawer move with it."""
+        m, d, ids = self.model, self.data, self.ids
+        if self._handle == k:
+            d.eq_active[ids["rec_eq"][k]] = 0
+            self._handle = -1
+        b = ids["rec_body"][k]
+        rmat_old, rpos_old = d.xmat[b].reshape(3, 3).copy(), d.xpos[b].copy()
+        inside = [j for j in range(N_OBJECTS) if j != self._held and self._in_drawer(j, k)]
+        local = {j: rmat_old.T @ (d.xpos[ids["obj_body"][j]] - rpos_old) for j in inside}
+        d.qpos[ids["rec_q"][k]] = 0.0
+        d.qvel[ids["rec_v"][k]] = 0.0
+        mujoco.mj_kinematics(m, d)
+        for j in inside:
+            q = ids["obj_q"][j]
+            d.qpos[q:q + 3] = d.xpos[b] + d.xmat[b].reshape(3, 3) @ local[j]
+            d.qvel[ids["obj_v"][j]:ids["obj_v"][j] + 6] = 0.0
+        mujoco.mj_forward(m, d)
+
+    def _in_drawer(self, j, k):
+        """Does object j rest in drawer k (a fridge door moves nothing)?"""
+        if RECEPTACLES[k] == "fridge":
+            return False
+        m, d, ids = self.model, self.data, self.ids
+        b = ids["rec_body"][k]
+        rel = d.xmat[b].reshape(3, 3).T @ (d.xpos[ids["obj_body"][j]] - d.xpos[b])
+        half = CAB_SIZE[0] / 2, CAB_SIZE[1] / 2
+        return abs(rel[0]) < half[0] and abs(rel[1]) < half[1] and -0.02 < rel[2] < 0.15
+
+    def drop(self):
+        """Let go of whatever the cup holds."""
+        self._grip(-1)
+        mujoco.mj_forward(self.model, self.data)
+
+    def push_base(self, dx, dy, dyaw):
+        """Displace the base by (dx, dy) m and dyaw rad if it lands clear of the scene -> moved?"""
+        m, d, ids = self.model, self.data, self.ids
+        q = ids["base_q"]
+        old = d.qpos[q].copy()
+        d.qpos[q] = old + [dx, dy, dyaw]
+        mujoco.mj_forward(m, d)
+        g = d.contact.geom[:d.ncon]
+        rob = ids["is_robot"][g]
+        if ((rob[:, 0] ^ rob[:, 1]) & (d.contact.dist[:d.ncon] < 0)).any():
+            d.qpos[q] = old
+            mujoco.mj_forward(m, d)
+            return False
+        return True
 
     # --- observations and privileged state ---
 
@@ -773,8 +808,10 @@ class RearrangeEnv:
         return np.array([x, y]), yaw, np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
 
     def _polar(self, p, xy, yaw):
+        """(distance, sin, cos) of the bearing of p from the base: a raw angle jumps by 2 pi when p
+        passes behind the robot, which a network must then learn around."""
         ang = np.arctan2(p[1] - xy[1], p[0] - xy[0]) - yaw
-        return np.array([np.hypot(p[0] - xy[0], p[1] - xy[1]), (ang + np.pi) % (2 * np.pi) - np.pi])
+        return np.array([np.hypot(p[0] - xy[0], p[1] - xy[1]), np.sin(ang), np.cos(ang)])
 
     def depth(self):
         """(H, W, 1) float32 depth image in [0, 1] by ray casting from the head camera."""
@@ -847,9 +884,9 @@ class RearrangeEnv:
         return SKILL_IDS[skill]
 
     def receptacle_label(self):
-        """Auxiliary label (Sec. 4.2): i when RECEPTACLES[i - 1] holds the target and is closed, else 0."""
-        r = self._in_receptacle
-        return int(r) if r and self.open_fraction()[r - 1] < OPEN_FRACTION else 0
+        """Auxiliary label y^pred (Sec. 4.2): i when RECEPTACLES[i - 1] contains the target (it
+        started there and is not yet picked), whether open or not; 0 when it started in the open."""
+        return int(self._in_receptacle)
 
     def privileged(self):
         """Simulator state for the expert and the labels; never part of the observation."""

@@ -12,8 +12,6 @@ So numbers are comparable across runs and do not depend on the number of workers
                        --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
     python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
-    python evaluate.py --policy ckpt/st.pt --difficulty easy --assist reach  # the expert's reaches
-    python evaluate.py --policy ckpt/st.pt --difficulty easy --handover pick # the policy from the pick on
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \\
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
@@ -23,6 +21,11 @@ the +- is over rollout seeds (--seeds), with several over training seeds. Table 
 episodes whose target starts in a closed drawer, the rate of picking the target and the accuracy
 of the predicted skill against the ground-truth rule of Appendix D (info["skill_gt"]), without
 and with the perturbation (the drawer snaps shut once after it has been open for a while).
+
+Beside each rollout an oracle expert on the same env labels every visited state with the skill it
+would choose there (the training label; its action is not used), which gives two more measures of
+the skill module in closed loop: its accuracy against that label, and its lock-in, the share of
+steps of easy episodes (nothing to open) on which it predicts open_drawer or open_fridge.
 Results go to --out (JSON with every rollout: outcome, failure, skill counts, and where it ended,
 held_at_end and goal_distance_at_end) and the same name with .md (the tables).
 """
@@ -78,13 +81,6 @@ class Config:
     """episodes per method written to --video"""
     log_every: float = 10.0
     """seconds between progress lines"""
-    assist: str = ""
-    """reach: while a checkpoint predicts pick (target not held) or place (target held), the
-    expert's closed-loop reach sets its arm and grip: what the rest of the policy achieves"""
-    handover: str = ""
-    """pick, place, open_drawer or open_fridge: the oracle expert acts until its plan first reaches
-    this skill, then the policy acts for the rest of the episode (it has seen every step, so its
-    context is full): what the policy does from the expert's hand-off; empty: the policy throughout"""
     plot: str = ""
     """draw Fig. 3 (success and picked per architecture, context length, number of demos) to this
     PNG; needs matplotlib; without --policy it redraws from the JSON at --out"""
@@ -92,6 +88,7 @@ class Config:
 
 EVAL_SEED = 0                                   # fixed seed of the evaluation episode lists
 GROUPS = (("all", "All"), ("easy", "Easy"), ("hard", "Hard"), ("very_hard", "Very Hard"))
+OPENING = (env.SKILL_IDS["open_drawer"], env.SKILL_IDS["open_fridge"])
 CONDITIONS = ("no_perturb", "perturb")
 
 
@@ -158,8 +155,7 @@ def parse_method(spec, cfg):
     variant = variants.pop()
     trained = policy.train_config              # the last member's: training seeds share the rest
     setting = {"variant": variant, "context": policy.cfg.context, "n_demos": trained.get("n_demos"),
-               "segments": trained.get("segments") or "", "epochs": trained.get("epochs"),
-               "init": bool(trained.get("init"))}
+               "segments": trained.get("segments") or "", "epochs": trained.get("epochs")}
     return {"name": f"{variant} ({spec})", "spec": spec, "variant": variant, "members": members,
             "setting": setting}
 
@@ -172,84 +168,44 @@ def rollout(policy, envs, episodes, seeds, on_step=None):
 
     The reward passed to the policy is that of the previous step (0 on the first), which only the
     Decision Transformer baselines read. Skill accuracy compares the policy's skill for an
-    observation with the Appendix D label of the same state (the info that came with the obs).
-    A finished episode's env stands still while the others go on; on_step sees episode 0's obs.
+    observation with two labels of the same state: the Appendix D rule (the info that came with
+    the obs) and the skill an oracle expert chooses there (its act() before the step; the action
+    is dropped). A finished episode's env stands still while the others go on; on_step sees
+    episode 0's obs.
     """
     n = len(episodes)
     obs, infos = map(list, zip(*[e.reset(seed=s, options={"episode": ep})
                                  for e, ep, s in zip(envs, episodes, seeds)]))
     policy.reset()
-    reward, total, steps, predicted, correct = [0.0] * n, [0.0] * n, [0] * n, [0] * n, [0] * n
+    labellers = [expert.Expert(e, plan="oracle") for e in envs[:n]]
+    for x in labellers:
+        x.reset()
+    reward, total, steps = [0.0] * n, [0.0] * n, [0] * n
+    predicted, correct, correct_expert, opening = [0] * n, [0] * n, [0] * n, [0] * n
     done = [False] * n
     while not all(done):
         if on_step and not done[0]:
             on_step(obs[0])
         actions, skills = policy.act_batch(obs, reward)
         for i in (i for i in range(n) if not done[i]):
-            predicted[i] += skills[i] >= 0     # variants without a skill module return -1
-            correct[i] += int(skills[i]) == int(infos[i]["skill_gt"])
+            label = labellers[i].act(obs[i])[1]
+            if skills[i] >= 0:                 # variants without a skill module return -1
+                predicted[i] += 1
+                correct[i] += int(skills[i]) == int(infos[i]["skill_gt"])
+                correct_expert[i] += int(skills[i]) == int(label)
+                opening[i] += int(skills[i]) in OPENING
             obs[i], reward[i], terminated, truncated, infos[i] = envs[i].step(actions[i])
             total[i], steps[i], done[i] = total[i] + reward[i], steps[i] + 1, terminated or truncated
     # Where each episode ended, to tell a failed place from a dropped or never-carried object.
     ends = [e.privileged() for e in envs[:n]]
     return [{"index": int(ep.index), "difficulty": ep.difficulty, "kind": ep.kind,
              "success": bool(info["success"]), "picked": bool(info["picked"]), "perturbed": bool(info["perturbed"]),
-             "failure": info["failure"], "steps": steps[i], "skill_predicted": int(predicted[i]),
-             "skill_correct": correct[i], "return": float(total[i]),
+             "failure": info["failure"], "steps": steps[i], "skill_predicted": predicted[i],
+             "skill_correct": correct[i], "skill_correct_expert": correct_expert[i],
+             "skill_opening": opening[i], "return": float(total[i]),
              "held_at_end": bool(end["held"] == ep.target),
              "goal_distance_at_end": float(np.linalg.norm(end["objects"][ep.target] - end["goal"]))}
             for i, (ep, info, end) in enumerate(zip(episodes, infos, ends))]
-
-
-REACH_SKILLS = (env.SKILL_IDS["pick"], env.SKILL_IDS["place"])
-
-
-class ReachAssist:
-    """--assist reach: the policy acts, but the arm and grip of a predicted pick (target not held)
-    or place (target held) are the expert's reach (expert.Expert.reach_action)."""
-
-    def __init__(self, policy, envs):
-        self.policy, self.envs = policy, envs
-        self.experts = [expert.Expert(e) for e in envs]
-
-    def reset(self):
-        self.policy.reset()
-        for x in self.experts:
-            x.reset()
-
-    def act_batch(self, obs, rewards):
-        actions, skills = self.policy.act_batch(obs, rewards)
-        for i, (x, skill) in enumerate(zip(self.experts, skills)):
-            reach = x.reach_action(env.SKILLS[skill]) if skill in REACH_SKILLS else None
-            if reach is not None:
-                actions[i][env.ARM], actions[i][env.GRIP] = reach[env.ARM], reach[env.GRIP]
-        return actions, skills
-
-
-class Handover:
-    """--handover SKILL: the oracle expert acts until its plan first reaches SKILL, then the policy
-    acts for the rest of the episode. The policy sees every observation from the first step (its
-    actions are dropped until then), so its context at the hand-off is that of the expert's steps."""
-
-    def __init__(self, policy, envs, skill):
-        self.policy, self.skill = policy, env.SKILL_IDS[skill]
-        self.experts = [expert.Expert(e) for e in envs]
-
-    def reset(self):
-        self.policy.reset()
-        for x in self.experts:
-            x.reset()
-        self.handed = [False] * len(self.experts)
-
-    def act_batch(self, obs, rewards):
-        actions, skills = self.policy.act_batch(obs, rewards)
-        for i, x in enumerate(self.experts):
-            if not self.handed[i]:
-                action, skill = x.act(obs[i], rewards[i])
-                self.handed[i] = skill == self.skill
-                if not self.handed[i]:
-                    actions[i] = action
-        return actions, skills
 
 
 class ExpertBatch:
@@ -283,28 +239,14 @@ def actor(ref, env_config, n=1):
 
 
 def rollout_job(job):
-    """Worker entry: job = (tags, ref, env_config, episodes, seeds, assist, handover) -> list of tags
-    + rollout result."""
-    tags, ref, env_config, episodes, seeds, assist, handover = job
+    """Worker entry: job = (tags, ref, env_config, episodes, seeds) -> list of tags + rollout result."""
+    tags, ref, env_config, episodes, seeds = job
     policy, envs = actor(ref, env_config, len(episodes))
-    if assist == "reach" and not ref.startswith("expert:"):
-        policy = ReachAssist(policy, envs)
-    if handover and not ref.startswith("expert:"):
-        policy = Handover(policy, envs, handover)
     return [dict(tags, **r) for r in rollout(policy, envs, episodes, seeds)]
 
 
 def init_worker():
     torch.set_num_threads(1)   # one core per worker process
-
-
-def success_check(ckpt_path: str, episodes: int, seed: int = 0) -> float:
-    """Success rate of a checkpoint on the first `episodes` seen episodes, one process (for train.py)."""
-    eps = env.make_episodes("seen", episodes, seed=EVAL_SEED)
-    policy = load_checkpoint(ckpt_path, batch=len(eps))
-    envs = [env.RearrangeEnv(**policy.env_config) for _ in eps]
-    results = rollout(policy, envs, eps, [reset_seed("seen", ep.index, seed) for ep in eps])
-    return float(np.mean([r["success"] for r in results]))
 
 
 # --- aggregation ---
@@ -322,6 +264,10 @@ def summarize(rollouts):
     out["success_given_picked"] = pct(sum(r["success"] for r in picked), len(picked))
     out["skill_accuracy"] = pct(sum(r["skill_correct"] for r in rollouts),
                                 sum(r["skill_predicted"] for r in rollouts))
+    out["skill_accuracy_expert"] = pct(sum(r["skill_correct_expert"] for r in rollouts),
+                                       sum(r["skill_predicted"] for r in rollouts))
+    easy = [r for r in rollouts if r["kind"] == "easy"]   # lock-in: opening where nothing needs it
+    out["opening_share_easy"] = pct(sum(r["skill_opening"] for r in easy), sum(r["skill_predicted"] for r in easy))
     out["perturbed"] = pct(sum(r["perturbed"] for r in rollouts), len(rollouts))
     out["mean_length"] = float(np.mean([r["steps"] for r in rollouts]))
     return out
@@ -381,9 +327,12 @@ def markdown(results):
             table(f"Table 2: picking the target and skill accuracy (%), {s}, {cfg['episodes']} episodes "
                   f"with the target in a closed drawer", header, rows)
     for s in splits:
-        header = ["Method", "Condition", "Picked", "Success given picked", "Skill accuracy", "Perturbed",
-                  "Mean length", "Failures (last step)"]
-        rows = [[m["name"], c] + [fmt(r[k]) for k in ("picked", "success_given_picked", "skill_accuracy", "perturbed")]
+        header = ["Method", "Condition", "Picked", "Success given picked", "Skill accuracy (App. D rule)",
+                  "Skill accuracy (expert label)", "Opening skill on easy", "Perturbed", "Mean length",
+                  "Failures (last step)"]
+        keys = ("picked", "success_given_picked", "skill_accuracy", "skill_accuracy_expert", "opening_share_easy",
+                "perturbed")
+        rows = [[m["name"], c] + [fmt(r[k]) for k in keys]
                 + [f"{r['mean_length']['mean']:.0f}", ", ".join(f"{k} {v}" for k, v in r["failures"].items())]
                 for m in methods for c, r in m["results"][s].items()]
         table(f"Details: {s}", header, rows)
@@ -520,25 +469,15 @@ def evaluate(cfg):
     if cfg.batch < 1 or cfg.workers < 1 or cfg.episodes < 1 or cfg.seeds < 1:
         raise ValueError(f"--batch, --workers, --episodes and --seeds must be >= 1, got {cfg.batch}, "
                          f"{cfg.workers}, {cfg.episodes}, {cfg.seeds}")
-    if cfg.assist not in ("", "reach"):
-        raise ValueError(f"--assist must be reach or empty, got {cfg.assist!r}")
-    if cfg.handover and cfg.handover not in env.SKILLS[1:]:
-        raise ValueError(f"--handover must be one of {env.SKILLS[1:]} or empty, got {cfg.handover!r}")
     splits = ["seen", "unseen"] if cfg.split == "both" else [cfg.split]
     methods = [parse_method(spec, cfg) for spec in cfg.policy]
-    for m in methods:
-        if cfg.assist and not m["spec"].startswith("expert:"):
-            m["name"] += " + expert reach"
-        if cfg.handover and not m["spec"].startswith("expert:"):
-            m["name"] += f" from the expert's {cfg.handover}"
     conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
     episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty) for s in splits}
     # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list: the same
     # batches (and so the same numbers) whatever the number of workers.
     chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
     jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
-             ref, dict(env_config, perturb=c == "perturb"), chunk, [reset_seed(s, ep.index, seed) for ep in chunk],
-             cfg.assist, cfg.handover)
+             ref, dict(env_config, perturb=c == "perturb"), chunk, [reset_seed(s, ep.index, seed) for ep in chunk])
             for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
             for s in splits for c in conditions for chunk in chunks[s]]
     n_total = sum(len(job[3]) for job in jobs)

@@ -1,10 +1,20 @@
 """Privileged scripted expert: solves the rearrangement task and labels every step with its skill.
 
-The paper's demonstrations come from M3 (Oracle): RL skills sequenced by a planner that reads the
-simulator (Appendix C.1). Ours are scripted controllers on the privileged state: navigation by a
-wavefront planner on the layout's occupancy grid and path following; pick, place and opening by
-damped-least-squares inverse kinematics on the end-effector site. With plan="fixed" it is the M3
-baseline: navigate, pick, navigate, place, never opening anything. Neither re-plans (Appendix C.3).
+The paper's demonstrations come from M3 (Oracle): closed-loop RL skills that act on the current
+observation, sequenced by a planner that reads the simulator and re-plans (Appendix C.1). Ours
+are scripted state-feedback controllers on the privileged state, and the expert is a function of
+the current state alone: every step it (1) chooses the skill from the world as it is now (is the
+target held, is the receptacle holding the target or the goal closed, where are the robot and the
+arm) and (2) computes that skill's action by feedback. No timers, counters, waypoint indices or
+targets captured at an earlier step: restoring a simulator state into a fresh env and a fresh
+expert gives the same action and skill. So it recovers from whatever the state shows (a drawer
+pushed shut is opened again, a dropped object is picked again, a place that missed is retried) and
+it can label any state a learner reaches (DAgger: `collect.py --policy CKPT`).
+
+Navigation follows a distance field to its goal on the layout's occupancy grid (a cache that
+depends only on the layout, the goal and which receptacles stand open); pick, place and opening
+move the arm toward a damped-least-squares IK solution found from the measured joints every step.
+With plan="fixed" it is the M3 baseline: navigate, pick, navigate, place, never opening anything.
 
     python expert.py --episodes 40 --split unseen               # success by difficulty
     python expert.py --episodes 40 --split unseen --plan fixed
@@ -22,24 +32,40 @@ from env import SKILL_IDS
 
 # --- controller constants ---
 
-NAV_CLEAR = 0.55            # m: preferred planning clearance of the base centre (robot radius 0.3 + 0.25)
-NAV_INFLATE = 0.4           # m: the least clearance, where NAV_CLEAR leaves no path
+NAV_CLEAR = 0.55            # m: preferred clearance of the base centre (robot radius 0.3 + 0.25)
+NAV_INFLATE = 0.4           # m: the least clearance; cells between the two cost NAV_NEAR_COST each
+NAV_NEAR_COST = 4.0         # so a path takes the wide berth unless it is much longer
+CONTACT_FORCE = 100.0       # N: navigation backs off from a contact this strong
+DOOR_MARGIN = 0.15          # m: extra clearance from an open door or drawer
 NAV_DRIFT_DECAY = np.exp(-1 / 30)   # per step: the navigation noise drifts with a 1 s time constant
-LOOKAHEAD = 0.35            # m: pure-pursuit lookahead along the path
-NAV_TIMEOUT = 700           # steps per skill before it gives up
+FIELD_POOL = 2              # the distance field's cells are 2 x 2 occupancy cells (0.1 m): 8 times faster
+LOOKAHEAD = 4               # field cells (0.4 m) along the descent of the distance field to aim at
+ARRIVE = 0.05               # m: navigation has reached its pose's position; then it turns or settles
 STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to the front face, m
 REACH = {"surface": 0.6, "drawer": 0.58, "fridge": 0.6}       # base centre to the object or goal, m
-DOOR_TARGET = 1.6           # rad the expert swings the fridge door to (range 1.75)
+WORK_YAW, WORK_DIST = 0.2, 0.1      # rad, m: a pick or place starts this near facing its point at reach
+OPEN_XY, OPEN_YAW = 0.08, 0.08      # m, rad: an opening starts this near its pose
+NEED_OPEN = 0.75            # a receptacle opened less than this fraction must be opened (the expert
+                            # opens drawers to DRAWER_DONE and the door to DOOR_DONE)
+CARRY_OPEN = 0.4            # ... but with the target in the cup only below this (it must be put down
+                            # to open it, so a door nudged a little shut is placed through)
+DRAWER_DONE = 0.97          # fraction at which the drawer pull lets go
+DOOR_DONE = 1.5             # rad at which the door swing lets go (range 1.75; the arm's reach ends ~1.58)
+DOOR_TARGET = 1.6           # rad the swing's aim never passes
+DOOR_STEP = 0.15            # rad: each step the swing aims this far ahead of the door's angle
 ARM_EASE = 3                # steps: the arm closes 1/ARM_EASE of its error per step near its target
-REST_TOL = 0.2              # rad: a manipulation skill ends this near the folded pose (see _rest)
-FUNNEL_HEIGHT = 0.15        # m: pick and place approach their point from this high above it (_approach)
+REST_TOL = 0.2              # rad: the arm counts as folded this near ARM_REST (a held object stops
+                            # the fold 0.12-0.14 rad short)
+FUNNEL_HEIGHT = 0.15        # m: pick and place approach their point from this high above it
+FUNNEL_HEIGHT_FRIDGE = 0.08 # ... in the fridge, whose upper shelf leaves the wrist little room
 FUNNEL_SLOPE = 2.0          # the aim is this many times the horizontal error above the point
-PICK_TOL = 0.015            # m: the pick's approach ends this near the top of the object (if not yet held)
-PLACE_TOL = 0.02            # m: ... and the place's this near the drop point
 GRASP_ZONE = 0.1            # m: the suction is on for the last 10 cm of the pick's approach
-RELEASE_ZONE = 0.12         # m: ... and off for the last 12 cm of the place's. At 4 cm learned places
-                            # hovered the object 10-27 cm from the goal and never released (README,
-                            # "The release round"); the oracle succeeds as often with 12 cm
+RELEASE_ZONE = 0.12         # m: ... and off for the last 12 cm of the place's (at 4 cm learned places
+                            # hovered near the goal and never released: EXPERIMENTS.md, release)
+PLACE_TOL = 0.03            # m: the place releases at the latest this near its drop point ...
+DROP_XY = 0.08              # ... or with the object this near the goal horizontally and low over it
+LIFT = 0.03                 # m: a held object is lifted (and drawn in) until this much air is under it
+DONE_DIST = 0.12            # m: the target this near the goal and not held: the place is done
 DOWN = np.array([0.0, 0.0, -1.0])
 
 
@@ -54,99 +80,130 @@ class Args:
     seed: int = 0
     """seed of the episode set and of the env resets"""
     noise: float = 0.0
-    """std of Gaussian noise added to executed arm and base actions (DART)"""
+    """std of Gaussian noise added to the executed arm (and, while navigating, base) actions (DART)"""
     nav_noise: float = 0.0
-    """std of a slowly drifting noise added to the executed turn rate while following a path (DART)"""
-    jitter: float = 0.0
-    """navigation to a pick or place ends up to this many rad off facing its point (DART)"""
+    """std of a slowly drifting noise added to the executed turn rate while navigating (DART)"""
+    perturb: bool = False
+    """Sec. 5.4: the target's receptacle snaps shut once after it has been open for perturb_after steps"""
+    perturb_after: int = 50
+    """steps the target's receptacle must have been open before the perturbation fires"""
 
 
 class Expert:
-    """Scripted skills on the privileged state; act() returns the clean action and its skill id."""
+    """State-feedback skills on the privileged state; act() returns the clean action and its skill id."""
 
-    def __init__(self, env_, plan="oracle", seed=0, noise=0.0, nav_noise=0.0, jitter=0.0):
+    def __init__(self, env_, plan="oracle", seed=0, noise=0.0, nav_noise=0.0):
         if plan not in ("oracle", "fixed"):
             raise ValueError(f"plan must be 'oracle' or 'fixed', got {plan!r}")
         self.env, self.plan = env_, plan
-        self.noise, self.nav_noise, self.jitter = float(noise), float(nav_noise), float(jitter)
-        self.rng = np.random.default_rng(seed)
+        self.noise, self.nav_noise = float(noise), float(nav_noise)
+        self.rng = np.random.default_rng(seed)   # the DART noise's, never the label's
         self.compute_time = 0.0
-
-    # --- plan (decided once at reset, as M3 (Oracle); never re-planned) ---
+        self.fields = {}                         # (layout, goal cell, open receptacles) -> distance field
+        self.drift, self.skill = 0.0, SKILL_IDS["navigate"]
 
     def reset(self):
-        e = self.env
-        self.p = e.privileged()
-        self.m = e.model
-        self.d_ik = mujoco.MjData(self.m)      # scratch data for inverse kinematics
-        self.ids = e.ids
-        self.fur = {f.name: f for f in self.p["layout"].furniture}
-        ep = self.p["episode"]
-        steps = []
-        if self.plan == "oracle" and ep.goal_receptacle:
-            steps += [("navigate", (self._open_pose(ep.goal_place), None)), ("open", ep.goal_receptacle - 1)]
-        if self.plan == "oracle" and ep.obj_receptacle:
-            steps += [("navigate", (self._open_pose(ep.object_places[ep.target]), None)), ("open", ep.obj_receptacle - 1)]
-        # navigation to a pick or place ends facing its point at arm's reach (as M3's navigation
-        # skill ends facing its target); obj_start is where the target started: in a drawer,
-        # before the drawer was pulled out
-        obj, place = ep.objects[ep.target], ep.object_places[ep.target]
-        pulled = env.DRAWER_TRAVEL if place.startswith("drawer") else 0.0
-        steps += [("navigate", (self._work_pose(place, obj), (obj, self._reach(place) + pulled))), ("pick", None),
-                  ("navigate", (self._work_pose(ep.goal_place, ep.goal), (ep.goal, self._reach(ep.goal_place)))),
-                  ("place", None)]
-        self.steps = steps
-        self.gen, self.skill = None, None
-        self.drift, self.following = 0.0, False
-        self.reach_step = -1                    # step of the current _approach, -1 outside one
+        """Start of an episode: only the noise process restarts; the labels have no memory."""
+        self.drift = 0.0
 
-    def act(self, obs, reward=0.0):
+    def act(self, obs=None, reward=0.0):
         """(action float32 (10,), skill id) for the current state; obs is unused: the expert is privileged."""
         t0 = time.perf_counter()
-        self.p = self.env.privileged()
-        action = None
-        while action is None:
-            if self.gen is None:
-                if not self.steps:                  # plan finished: stay still
-                    action = np.zeros(env.ACTION_DIM)
-                    break
-                kind, arg = self.steps.pop(0)
-                self.gen = getattr(self, f"_{kind}")(arg)
-                self.skill = self._skill_id(kind, arg)
-            try:
-                action = next(self.gen)
-            except StopIteration:
-                self.gen = None
+        e = self.env
+        self.p, self.m, self.ids = e.privileged(), e.model, e.ids
+        self.fur = {f.name: f for f in self.p["layout"].furniture}
+        skill, action = self._decide()
+        self.skill = SKILL_IDS[skill]
         self.compute_time += time.perf_counter() - t0
         return np.asarray(action, np.float32), self.skill
 
     def noisy(self, action):
         """DART (Laskey et al. 2017): the env executes a perturbed action, the demo records the clean one.
 
-        Per-step noise on arm and base, and while following a path a drift of the turn rate: noise
-        that changes every 1/30 s averages out within centimetres, a drift carries the base tens of
-        centimetres off its path, as a learned navigation strays, and the demo shows the way back."""
+        Per-step noise on the arm, and while navigating on the base plus a drift of the turn rate:
+        noise that changes every 1/30 s averages out within centimetres, a drift carries the base
+        tens of centimetres off its path, as a learned navigation strays, and the demo shows the way
+        back. The base is not noised during manipulation, whose base label holds it on its mark."""
         if self.noise <= 0 and self.nav_noise <= 0:
             return action
         a = np.array(action, np.float32)
+        navigating = self.skill == SKILL_IDS["navigate"]
         if self.noise > 0:
-            a[:9] += self.rng.normal(0.0, self.noise, 9)
+            a[:9 if navigating else 7] += self.rng.normal(0.0, self.noise, 9 if navigating else 7)
         if self.nav_noise > 0:
             self.drift = NAV_DRIFT_DECAY * self.drift + np.sqrt(1 - NAV_DRIFT_DECAY ** 2) * self.rng.normal(0.0, self.nav_noise)
-            if self.following:
+            if navigating:
                 a[8] += self.drift
         a[:9] = np.clip(a[:9], -1, 1)
         return a
 
-    def _skill_id(self, kind, arg):
-        if kind == "open":
-            return SKILL_IDS["open_fridge" if env.RECEPTACLES[arg] == "fridge" else "open_drawer"]
-        return SKILL_IDS[kind]
+    # --- the skill, chosen from the world as it is now (the planner of M3 (Oracle), re-run every step) ---
 
-    # --- geometry helpers ---
+    def _decide(self):
+        """-> (skill name, action). Each branch reads only the current privileged state."""
+        p, ep = self.p, self.p["episode"]
+        k = p["target"]
+        if p["handle"] >= 0:                                     # holding a handle: open it, then let go
+            return self._open_skill(p["handle"]), self._operate_handle(p["handle"])
+        if p["held"] >= 0 and p["held"] != k:                    # a distractor in the cup: put it down
+            return "place", self._hold(grip=-1.0)
+        goal_closed = self.plan == "oracle" and ep.goal_receptacle and self._closed(ep.goal_receptacle - 1)
+        if p["held"] == k:
+            if goal_closed and p["open_fraction"][ep.goal_receptacle - 1] < CARRY_OPEN:                                      # it cannot be opened with the object in
+                return "place", self._hold(grip=-1.0)            # the cup: put it down, open, pick again
+            goal, place = np.asarray(p["goal"]), ep.goal_place
+            if self._at_work(goal, place):
+                return "place", self._place_step(goal, place)
+            if not self._folded():
+                return "pick", self._stow()
+            return "navigate", self._navigate(self._work_pose(place, goal), face=(goal, self._reach(place)))
+        obj = p["objects"][k]
+        v = self.ids["obj_v"][k]
+        moving = np.linalg.norm(self.env.data.qvel[v:v + 3]) > 0.05
+        if moving:                                                # released or dropped: let it land
+            return ("place" if np.linalg.norm(obj - p["goal"]) < 0.3 else "pick"), self._hold()
+        if np.linalg.norm(obj - p["goal"]) < DONE_DIST:          # placed: clear the arm
+            return "place", self._stow()
+        r = p["obj_receptacle"] - 1
+        if goal_closed:
+            sub = ep.goal_receptacle - 1
+        elif self.plan == "oracle" and r >= 0 and self._closed(r):
+            sub = r
+        else:
+            sub = None
+        if sub is not None:                                       # open a receptacle
+            pose = self.p["poses"]["fridge_door" if env.RECEPTACLES[sub] == "fridge" else "cabinet"]
+            if self._at_pose(pose):
+                return self._open_skill(sub), self._grab_handle(sub)
+            if not self._folded():
+                return self._stow_skill(), self._stow()
+            return "navigate", self._navigate(pose)
+        place = self._support(obj)
+        if self._at_work(obj, place):
+            return "pick", self._pick_step(obj, place)
+        if not self._folded():
+            return self._stow_skill(), self._stow()
+        return "navigate", self._navigate(self._work_pose(place, obj), face=(obj, self._reach(place)))
 
-    def _furniture(self, place):
-        return self.fur["cabinet" if place.startswith("drawer") else place]
+    def _closed(self, r):
+        return self.p["open_fraction"][r] < NEED_OPEN
+
+    def _open_skill(self, r):
+        return "open_fridge" if env.RECEPTACLES[r] == "fridge" else "open_drawer"
+
+    def _stow_skill(self):
+        """The skill that folds an empty arm: the opening whose handle it is near, else the pick."""
+        p = self.p
+        near = [r for r in range(len(env.RECEPTACLES))
+                if p["open_fraction"][r] > 0.3 and np.linalg.norm(p["ee"] - p["handles"][r]) < 0.6]
+        return self._open_skill(near[0]) if near else "pick"
+
+    def _folded(self):
+        """The arm's set-point (observed as joint_target) is folded: an arm that a contact holds off
+        its set-point counts as folded, else the label would wait on the contact."""
+        return np.abs(self.p["arm_target"] - env.ARM_REST).max() < REST_TOL
+
+    # --- geometry ---
 
     def _frame(self, f):
         """Furniture front normal (into the room), lateral axis, and front-face centre."""
@@ -154,379 +211,437 @@ class Expert:
         lat = np.array([-n[1], n[0]])
         return n, lat, np.array(f.center) + n * f.size[0] / 2
 
+    def _support(self, pt):
+        """Name of the place under a point: a surface, a drawer (pulled out or not) or the fridge."""
+        for f in self.p["layout"].furniture:
+            if f.kind not in ("surface", "cabinet", "fridge"):
+                continue
+            n, lat, face = self._frame(f)
+            front = (pt[:2] - face) @ n                           # > 0: in front of the face
+            inside = -f.size[0] - 0.05 < front < (env.DRAWER_TRAVEL + 0.05 if f.kind == "cabinet" else 0.05)
+            if inside and abs((pt[:2] - face) @ lat) < f.size[1] / 2 + 0.05:
+                if f.kind == "cabinet":
+                    return "drawer_1" if pt[2] < (env.DRAWER_Z[0] + env.DRAWER_Z[1]) / 2 + 0.1 else "drawer_0"
+                return f.name
+        return "floor"
+
+    def _furniture(self, place):
+        return self.fur["cabinet" if place.startswith("drawer") else place]
+
+    def _kind(self, place):
+        return "drawer" if place.startswith("drawer") else "surface" if place == "floor" else self._furniture(place).kind
+
+    def _reach(self, place):
+        return REACH[self._kind(place)]
+
     def _work_pose(self, place, point):
-        """Base pose facing the furniture, in line with the point, STANDOFF from the front face."""
+        """Base pose facing the point at arm's reach, in line with it from STANDOFF before the face."""
+        if place == "floor":                                     # no furniture: come at it from here
+            xy = np.asarray(self.p["base"][:2])
+            u = (point[:2] - xy) / max(np.linalg.norm(point[:2] - xy), 1e-6)
+            return (*(point[:2] - u * REACH["surface"]), np.arctan2(u[1], u[0]))
         f = self._furniture(place)
         n, lat, face = self._frame(f)
-        kind = "drawer" if place.startswith("drawer") else f.kind
+        kind = self._kind(place)
         offset = float(np.clip((np.asarray(point[:2]) - face) @ lat, -f.size[1] / 2 + 0.1, f.size[1] / 2 - 0.1))
         if kind == "fridge":                     # keep clear of the open door on the hinge side
-            offset = 0.05
-        xy = face + lat * offset + n * STANDOFF[kind]
-        return (*xy, f.yaw + np.pi)
+            offset = 0.12
+        w = face + lat * offset + n * STANDOFF[kind]
+        u = (point[:2] - w) / np.linalg.norm(point[:2] - w)
+        xy = point[:2] - u * REACH[kind]          # on the line from the work pose to the point, at reach
+        return (*xy, np.arctan2(u[1], u[0]))
 
-    def _open_pose(self, place):
-        """Where the base stands to open the receptacle at `place` (env.interaction_poses)."""
-        return self.p["poses"]["fridge_door" if place == "fridge" else "cabinet"]
+    def _at_work(self, point, place):
+        """Facing the point at arm's reach: where a pick or place acts (its base label keeps it there)."""
+        x, y, yaw = self.p["base"]
+        to = np.asarray(point[:2]) - [x, y]
+        return abs(_wrap(np.arctan2(to[1], to[0]) - yaw)) < WORK_YAW and abs(np.linalg.norm(to) - self._reach(place)) < WORK_DIST
+
+    def _at_pose(self, pose):
+        x, y, yaw = self.p["base"]
+        return np.hypot(pose[0] - x, pose[1] - y) < OPEN_XY and abs(_wrap(pose[2] - yaw)) < OPEN_YAW
+
+    # --- arm ---
 
     def _arm_action(self, q_des, base=(0.0, 0.0), grip=0.0):
-        """Joint-delta action that moves the arm's target toward q_des: at the env's max rate while
-        far, then proportionally (1/ARM_EASE of the error per step), so that the label is a smooth
-        function of the observed joint_target: a max-rate label flips from +1 to -1 within one
-        arm_delta (0.05 rad), which a learned arm smooths over and overshoots by tenths of a rad."""
+        """Joint-delta action that moves the arm's set-point toward q_des: at the env's max rate while
+        far, then 1/ARM_EASE of the error per step, so that the label is a smooth function of the
+        observed joint_target (a max-rate label flips sign within one arm_delta, which a learned arm
+        smooths over and overshoots)."""
         delta = (q_des - self.p["arm_target"]) / (ARM_EASE * self.env.config.arm_delta)
         return np.array([*np.clip(delta, -1, 1), *base, grip])
 
-    def _ik(self, target, axis=None, base=None, q0=None, iters=80):
-        """Damped least squares on ee_site position (+ cup axis, the ee x-axis); mujoco4.md Sec. 8."""
-        m, d, ids = self.m, self.d_ik, self.ids
-        d.qpos[:] = self.env.data.qpos
-        if base is not None:
-            d.qpos[ids["base_q"]] = base
-        q = np.array(self.p["arm"] if q0 is None else q0, float)
+    def _hold(self, base=(0.0, 0.0), grip=0.0):
+        return self._arm_action(self.p["arm_target"], base, grip)
+
+    def _ik(self, target, axis=None, iters=30):
+        """Damped least squares on ee_site position (+ cup axis, the ee x-axis), from the measured
+        joints (the arm is redundant: a solution tracked from an earlier step would be hidden state)."""
+        m, ids = self.m, self.ids
+        d = self.env.data
+        if not hasattr(self, "d_ik") or self.d_ik_model is not m:
+            self.d_ik, self.d_ik_model = mujoco.MjData(m), m     # scratch data, rebuilt per layout model
+        di = self.d_ik
+        di.qpos[:] = d.qpos
+        q = np.array(self.p["arm"], float)
         jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         site = ids["ee_site"]
+        lo, hi = env.ARM_RANGE[:, 0] + 0.05, env.ARM_RANGE[:, 1] - 0.05
+        damp = 1e-3 * np.eye(3 if axis is None else 6)
         for _ in range(iters):
-            d.qpos[ids["arm_q"]] = q
-            mujoco.mj_kinematics(m, d)
-            mujoco.mj_comPos(m, d)              # the Jacobian needs comPos, not kinematics alone
-            err = target - d.site_xpos[site]
-            mujoco.mj_jacSite(m, d, jacp, jacr, site)
+            di.qpos[ids["arm_q"]] = q
+            mujoco.mj_kinematics(m, di)
+            mujoco.mj_comPos(m, di)              # the Jacobian needs comPos, not kinematics alone
+            err = target - di.site_xpos[site]
+            mujoco.mj_jacSite(m, di, jacp, jacr, site)
             if axis is not None:
-                cur = d.site_xmat[site].reshape(3, 3)[:, 0]
-                err = np.concatenate([err, 0.3 * np.cross(cur, axis)])
+                c = di.site_xmat[site].reshape(3, 3)[:, 0]
+                tilt = [c[1] * axis[2] - c[2] * axis[1], c[2] * axis[0] - c[0] * axis[2], c[0] * axis[1] - c[1] * axis[0]]
+                err = np.concatenate([err, 0.3 * np.asarray(tilt)])     # cup axis x target axis
                 J = np.vstack([jacp[:, ids["arm_v"]], 0.3 * jacr[:, ids["arm_v"]]])
             else:
                 J = jacp[:, ids["arm_v"]]
-            if np.linalg.norm(err[:3]) < 2e-3 and np.linalg.norm(err[3:]) < 0.02:
+            if err[:3] @ err[:3] < 4e-6 and err[3:] @ err[3:] < 4e-4:
                 break
-            dq = J.T @ np.linalg.solve(J @ J.T + 1e-3 * np.eye(len(err)), err)
-            q = np.clip(q + np.clip(dq, -0.3, 0.3), env.ARM_RANGE[:, 0] + 0.05, env.ARM_RANGE[:, 1] - 0.05)
+            dq = J.T @ np.linalg.solve(J @ J.T + damp, err)
+            q = np.minimum(np.maximum(q + np.minimum(np.maximum(dq, -0.3), 0.3), lo), hi)
         return q
 
-    def _move_arm(self, q_des, tol=0.03, timeout=60, base=(0.0, 0.0), grip=0.0):
-        """Yield actions until the arm joints are within tol of q_des (or timeout)."""
-        for _ in range(timeout):
-            if np.abs(self.p["arm"] - q_des).max() < tol:
-                return
-            yield self._arm_action(q_des, base, grip)
+    def _clearance(self, body):
+        """Air under a body (m): a ray straight down from its bottom, missing the robot and the body."""
+        g = np.ones(6, np.uint8)
+        g[env.ROBOT_GROUP] = 0
+        start = self.env.data.xpos[body] - [0, 0, env.OBJ_HALF + 0.002]
+        gid = np.zeros(1, np.int32)
+        dist = mujoco.mj_ray(self.m, self.env.data, start, DOWN, g, 1, int(body), gid)
+        return np.inf if dist < 0 else dist
 
-    def _path_arm(self, points, axis, tol=0.03, timeout=40):
-        """Move the end effector through Cartesian waypoints (IK per waypoint, warm-started)."""
-        q = self.p["arm"]
-        for pt in points:
-            q = self._ik(np.asarray(pt), axis, q0=q)
-            yield from self._move_arm(q, tol, timeout)
+    def _stow(self):
+        """Fold the arm by the way out that the cup's position calls for: lift a held object off its
+        support, leave a drawer handle straight back, go round the free edge of the open fridge door,
+        pull the cup out of a piece of furniture, then fold in joint space. Where the way out is out
+        of the arm's reach (its IK solution is where the arm already is), fold in joint space."""
+        p = self.p
+        ee = p["ee"]
+        k = p["target"]
+        x, y, _ = p["base"]
+        inward = np.array([*(np.array([x, y]) - ee[:2]), 0.0])
+        inward *= 0.15 / max(np.linalg.norm(inward), 1e-6)
+        aim = None
+        # up and toward the base (straight up is out of reach for an arm stretched over a counter),
+        # the cup's orientation free: the weld carries the object whatever it is
+        if p["held"] == k and self._clearance(self.ids["obj_body"][k]) < LIFT:
+            aim = ee + [0, 0, 0.05] + inward
+        elif p["held"] < 0:
+            obj = p["objects"][k]
+            n = self._frame(self.fur["cabinet"])[0]
+            near = [r for r in range(2) if np.linalg.norm(ee - p["handles"][r]) < 0.08]
+            if np.linalg.norm(ee[:2] - obj[:2]) < 0.05 and 0 < ee[2] - obj[2] < env.OBJ_HALF + 0.08:
+                aim = ee + [0, 0, 0.12]                          # up off a released object
+            elif near:                                           # off a drawer handle, straight back
+                aim = p["handles"][near[0]] + [*n * 0.14, 0.0]
+            else:
+                aim = self._door_way_out()
+                if isinstance(aim, tuple):                       # the base backs off instead
+                    return self._hold(base=aim)
+        if aim is None:
+            for name in ("fridge", "cabinet"):                   # out of the furniture's front first
+                f = self.fur[name]
+                n, lat, face = self._frame(f)
+                if (ee[:2] - face) @ n < 0.1 and abs((ee[:2] - face) @ lat) < f.size[1] / 2 + 0.1:
+                    aim = np.array([*(face + n * 0.2), ee[2]])
+        if aim is not None:
+            q = self._ik(aim)
+            if np.abs(q - p["arm"]).max() > 0.03 or np.linalg.norm(aim - ee) < 0.03:
+                return self._arm_action(q)
+        return self._arm_action(env.ARM_REST)
 
-    def _rest(self):
-        """Fold the arm at the end of a manipulation skill, which ends once the arm is within
-        REST_TOL of the folded pose; navigation's arm label (ARM_REST) finishes the fold. A held
-        object stops the fold 0.12-0.14 rad short, so with a fine tolerance every pick ended on
-        the timeout, a moment the policy cannot observe, and learned picks often never ended."""
-        yield from self._move_arm(env.ARM_REST, tol=REST_TOL, timeout=80)
+    def _door_way_out(self):
+        """The way back from the fridge door's handle, by where the cup is in the door's frame: s along
+        the panel from the hinge, h off its outer face. The handle is on the outer face, which the
+        open door turns away from the robot: away from the panel, past its free edge, round to the
+        robot's side, then back the base off so the arm has room to fold. -> an aim for the cup, a
+        base action (v, w), or None (not near the door)."""
+        p = self.p
+        r = env.RECEPTACLES.index("fridge")
+        if p["open_fraction"][r] < 0.3:
+            return None
+        f = self.fur["fridge"]
+        n, lat, face = self._frame(f)
+        th = p["open_fraction"][r] * env.DOOR_RANGE
+        hinge = face + n * 0.015 - lat * f.size[1] / 2
+        along = n * np.sin(th) + lat * np.cos(th)                # the panel, hinge to free edge
+        out = n * np.cos(th) - lat * np.sin(th)                  # the panel's outer normal
+        ee = p["ee"]
+        s, h = (ee[:2] - hinge) @ along, (ee[:2] - hinge) @ out
+        width = f.size[1]
+        if not (-0.1 < s < width + 0.4 and -0.35 < h < 0.3):
+            return None
+        at = lambda s_, h_: np.array([*(hinge + along * s_ + out * h_), ee[2]])
+        if h >= 0 and s < width + 0.12:
+            return at(s, 0.1) if h < 0.06 else at(width + 0.2, h)
+        if h > -0.2:
+            return at(width + 0.2, -0.25)
+        x, y, _ = p["base"]
+        if (np.array([x, y]) - face) @ n < 1.15:                 # room to fold: back the base off
+            return (-0.3 / self.env.config.lin_speed, 0.0)
+        return None
 
-    # --- navigation: wavefront on the inflated occupancy grid, pure pursuit along the path ---
+    # --- pick and place: a closed-loop reach from above ---
 
-    def _blocked(self, inflate):
-        """Occupancy for planning: furniture inflated by `inflate`, plus open drawers and doors."""
+    def _base_hold(self, point, place):
+        """Base label of a pick or place: keep facing the point at reach (the settle's feedback law)."""
+        x, y, yaw = self.p["base"]
+        to = np.asarray(point[:2]) - [x, y]
+        err = _wrap(np.arctan2(to[1], to[0]) - yaw)
+        along = np.linalg.norm(to) - self._reach(place)
+        w = np.clip(3.0 * err / self.env.config.ang_speed, -0.6, 0.6)
+        v = 0.0 if abs(err) > 0.3 else np.clip(3 * along, -0.4, 0.4) / self.env.config.lin_speed
+        return v, w
+
+    def _reach_step(self, place, pt, grip, zone, base):
+        """One step of the reach toward pt: every step aims FUNNEL_SLOPE x the horizontal error (at most
+        FUNNEL_HEIGHT) above the point and moves the arm toward the IK solution of that aim found from
+        the measured joints; within `zone` of the point the grip command is `grip`."""
+        ee = self.p["ee"]
+        err = pt - ee
+        e_xy = np.linalg.norm(err[:2])
+        height = FUNNEL_HEIGHT_FRIDGE if place == "fridge" else FUNNEL_HEIGHT
+        aim = pt + [0, 0, min(height, FUNNEL_SLOPE * e_xy)]
+        # reaching out from rest would sweep the forearm (and a held object) through the edge of a
+        # counter higher than the folded cup, or a held object through a drawer's front: first
+        # raise the cup in place
+        if place != "fridge" and e_xy > 0.15 and ee[2] < pt[2] + height - 0.03:
+            aim = np.array([*ee[:2], pt[2] + height])
+        # the release waits until the object is over its point: released farther out it can land
+        # on the front edge of a shelf and fall off
+        grip = grip if np.linalg.norm(err) < zone and (grip > 0 or e_xy < 0.03) else 0.0
+        return self._arm_action(self._ik(aim, DOWN), base, grip)
+
+    def _pick_step(self, obj, place):
+        """Reach for a point 0.5 cm above the object's top, the suction on for the last GRASP_ZONE: the
+        suction takes an object up to 3 cm away (env.GRASP_DIST), so a reach that stops short still
+        grasps, and the grip label is a function of the observed distance."""
+        pt = obj + [0, 0, env.OBJ_HALF + 0.005]
+        return self._reach_step(place, pt, 1.0, GRASP_ZONE, self._base_hold(obj, place))
+
+    def _place_step(self, goal, place):
+        """Reach for the drop point (the held object 4 cm above the goal), releasing within RELEASE_ZONE
+        of it once over it, or wherever the object already hangs low over the goal (an arm that
+        cannot reach the drop point exactly still lets go within the success distance)."""
+        p = self.p
+        obj = p["objects"][p["target"]]
+        drop = goal + p["ee"] - obj + [0, 0, 0.04]
+        over = np.linalg.norm(obj[:2] - goal[:2]) < DROP_XY and -0.02 < obj[2] - goal[2] < 0.1
+        if np.linalg.norm(drop - p["ee"]) < PLACE_TOL or over:
+            return self._hold(grip=-1.0)
+        return self._reach_step(place, drop, -1.0, RELEASE_ZONE, self._base_hold(goal, place))
+
+    # --- opening: take the handle, pull the drawer or swing the door, let go ---
+
+    def _grab_handle(self, r):
+        """Approach the handle along the furniture's normal, the cup pointing in: the aim stays in front
+        of the handle by FUNNEL_SLOPE x the cup's off-axis error (at most 0.3 m), then 1 cm past its axis
+        with the suction on for the last 6 cm, so a reach that falls a few cm short still takes it."""
+        p = self.p
+        f = self.fur["fridge" if env.RECEPTACLES[r] == "fridge" else "cabinet"]
+        n = self._frame(f)[0]
+        out = np.array([*n, 0.0])
+        handle = p["handles"][r]
+        e = p["ee"] - handle
+        off_axis = np.linalg.norm(e - (e @ out) * out)
+        aim = handle + out * min(0.3, max(FUNNEL_SLOPE * off_axis, -0.01))
+        grip = 1.0 if np.linalg.norm(e) < 0.06 else 0.0
+        pose = p["poses"]["fridge_door" if env.RECEPTACLES[r] == "fridge" else "cabinet"]
+        return self._arm_action(self._ik(aim, -out), self._pose_hold(pose), grip=grip)
+
+    def _operate_handle(self, r):
+        """Sec. 3: pull the drawer by backing the base away; swing the door by moving the cup along its
+        arc about the hinge, DOOR_STEP ahead of where it is now."""
+        p = self.p
+        frac = p["open_fraction"][r]
+        if env.RECEPTACLES[r] != "fridge":
+            if frac >= DRAWER_DONE:
+                return self._hold(grip=-1.0)
+            return self._hold(base=(-0.3 / self.env.config.lin_speed, 0.0))
+        th = frac * env.DOOR_RANGE
+        if th >= DOOR_DONE:
+            return self._hold(grip=-1.0)
+        f = self.fur["fridge"]
+        n, lat, face = self._frame(f)
+        hinge = face + n * 0.015 - lat * f.size[1] / 2
+        dth = min(DOOR_STEP, DOOR_TARGET + 0.05 - th)
+        c, s = np.cos(dth), np.sin(dth)
+        rel = p["ee"][:2] - hinge                                # the door turns from lat toward n
+        a, b = rel @ n, rel @ lat
+        rot = np.array([[c, s], [-s, c]]) @ np.array([a, b])     # (n, lat) coordinates after turning dth
+        tgt = hinge + n * rot[0] + lat * rot[1]
+        # position only: the suction holds the handle by a ball joint, and the redundant arm needs
+        # its freedom to follow the arc to its end
+        return self._arm_action(self._ik(np.array([*tgt, p["ee"][2]])), self._pose_hold(p["poses"]["fridge_door"]))
+
+    def _pose_hold(self, pose):
+        """Base label that holds the base on a pose against what the arm's work pushes it by."""
+        x, y, yaw = self.p["base"]
+        along = (np.asarray(pose[:2]) - [x, y]) @ [np.cos(yaw), np.sin(yaw)]
+        cfg = self.env.config
+        return np.clip(3 * along, -0.3, 0.3) / cfg.lin_speed, np.clip(3.0 * _wrap(pose[2] - yaw) / cfg.ang_speed, -0.5, 0.5)
+
+    # --- navigation: a distance field to the goal on the occupancy grid, pure pursuit down it ---
+
+    def _navigate(self, pose, face=None):
+        """Drive to pose (x, y, yaw), the arm folded; once there, turn to its heading, or with
+        face=(point, reach) face the point and settle at reach (what a pick or place needs)."""
+        p, cfg = self.p, self.env.config
+        x, y, yaw = p["base"]
+        pos = np.array([x, y])
+        goal = np.asarray(pose[:2], float)
+        dist = np.linalg.norm(goal - pos)
+        touch = self._contact()
+        if touch is not None:                    # pressed against the scene: back off from it
+            ahead = (touch[:2] - pos) @ [np.cos(yaw), np.sin(yaw)] > 0
+            return self._arm_action(env.ARM_REST, (-0.3 if ahead else 0.3, 0.0))
+        if dist < ARRIVE:
+            if face is None:
+                err = _wrap(pose[2] - yaw)
+                return self._arm_action(env.ARM_REST, (0.0, np.clip(3.0 * err / cfg.ang_speed, -0.6, 0.6)))
+            point, reach = face
+            to = np.asarray(point[:2]) - pos
+            err = _wrap(np.arctan2(to[1], to[0]) - yaw)
+            along = np.linalg.norm(to) - reach
+            w = np.clip(3.0 * err / cfg.ang_speed, -0.6, 0.6)
+            v = 0.0 if abs(err) > 0.3 else np.clip(3 * along, -0.4, 0.4) / cfg.lin_speed
+            return self._arm_action(env.ARM_REST, (v, w))
+        aim = self._lookahead(pos, goal)
+        err = _wrap(np.arctan2(aim[1] - y, aim[0] - x) - yaw)
+        w = np.clip(4.0 * err / cfg.ang_speed, -1, 1)
+        v = 0.0 if abs(err) > 0.5 else np.clip(2.0 * dist, 0.1, 1.0) * np.cos(err)
+        return self._arm_action(env.ARM_REST, (v, w))
+
+    def _contact(self):
+        """Where the robot presses on the scene with more than CONTACT_FORCE (the cup and a held object
+        excepted, as in env's collision measure) -> a world point, or None."""
+        e = self.env
+        d, ids = e.data, self.ids
+        g = d.contact.geom[:d.ncon]
+        if not len(g):
+            return None
+        rob = ids["is_robot"][g]
+        mask = (rob[:, 0] ^ rob[:, 1]) & (g[:, 0] != ids["cup"]) & (g[:, 1] != ids["cup"])
+        if self.p["held"] >= 0:
+            hg = ids["obj_geom"][self.p["held"]]
+            mask &= (g[:, 0] != hg) & (g[:, 1] != hg)
+        adr = d.contact.efc_address[:d.ncon]
+        mask &= adr >= 0
+        if not mask.any():
+            return None
+        force = np.abs(d.efc_force[adr[mask]])
+        if force.max() < CONTACT_FORCE:
+            return None
+        return d.contact.pos[:d.ncon][mask][np.argmax(force)].copy()
+
+    def _lookahead(self, pos, goal):
+        """The point LOOKAHEAD cells down the distance field from the base (the goal itself near it)."""
+        res = self.p["grid_res"] * FIELD_POOL
+        dist, nxt = self._field(goal)
+        shape = np.array(dist.shape)
+        c = tuple(np.clip((pos / res).astype(int), 0, shape - 1))
+        if not np.isfinite(dist[c]):                 # in an inflated or blocked cell: nearest way out
+            i, j = c
+            win = dist[max(i - 10, 0):i + 11, max(j - 10, 0):j + 11]
+            if not np.isfinite(win).any():
+                return goal
+            ii, jj = np.meshgrid(np.arange(win.shape[0]) + max(i - 10, 0), np.arange(win.shape[1]) + max(j - 10, 0), indexing="ij")
+            score = np.where(np.isfinite(win), win + 20.0 * np.hypot(ii - i, jj - j), np.inf)
+            a = np.unravel_index(np.argmin(score), win.shape)
+            return (np.array([ii[a], jj[a]]) + 0.5) * res
+        for _ in range(LOOKAHEAD):
+            n = nxt[c]
+            if n < 0:
+                return goal
+            c = (n // dist.shape[1], n % dist.shape[1])
+        return (np.array(c) + 0.5) * res
+
+    def _field(self, goal):
+        """Cost-to-go to the goal's cell over the base's free cells (8-connected; cells closer than
+        NAV_CLEAR to an obstacle cost NAV_NEAR_COST, so a path keeps a learner room for error) and,
+        per cell, the flat index of its next cell down (-1 at the goal). Cached: it depends only on the
+        layout, the goal cell and which receptacles stand open."""
+        p = self.p
+        res = p["grid_res"]
+        open_key = tuple(np.round(p["open_fraction"], 1))
+        g = tuple(np.clip((goal / res).astype(int), 0, np.array(p["occupancy"].shape) - 1))   # fine cell
+        key = (p["layout"].id, g, open_key)
+        if key not in self.fields:
+            if len(self.fields) > 256:
+                self.fields.clear()
+            self.fields[key] = self._make_field(g)
+        return self.fields[key]
+
+    def _make_field(self, g):
+        free = ~self._blocked(NAV_INFLATE)
+        clear = ~self._blocked(NAV_CLEAR)
+        i, j = g                                     # the goal may touch the inflation: free a disc
+        disc = slice(max(i - 6, 0), i + 7), slice(max(j - 6, 0), j + 7)
+        free[disc] |= ~self._blocked(env.ROBOT_RADIUS + 0.05, door_margin=0.0)[disc]
+        clear[disc] |= free[disc]
+        H, W = -(-free.shape[0] // FIELD_POOL), -(-free.shape[1] // FIELD_POOL)
+        pool = lambda a: np.pad(a, ((0, H * FIELD_POOL - a.shape[0]), (0, W * FIELD_POOL - a.shape[1]))).reshape(
+            H, FIELD_POOL, W, FIELD_POOL)
+        free, clear = pool(free).any((1, 3)), pool(clear).all((1, 3))   # a way through; a wide berth
+        cost = np.where(clear, 1.0, NAV_NEAR_COST)
+        cost[~free] = np.inf
+        dist = np.full(free.shape, np.inf)
+        g = (g[0] // FIELD_POOL, g[1] // FIELD_POOL)
+        dist[g] = 0.0
+        steps = [(a, b, np.hypot(a, b)) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
+        while True:                                  # Bellman-Ford sweeps until nothing improves
+            best = dist.copy()
+            for a, b, l in steps:                    # from the neighbour at (i + a, j + b) ...
+                src = dist[max(a, 0):H + min(a, 0), max(b, 0):W + min(b, 0)]
+                dst = (slice(max(-a, 0), H + min(-a, 0)), slice(max(-b, 0), W + min(-b, 0)))
+                np.minimum(best[dst], src + l * cost[dst], out=best[dst])
+            if np.array_equal(best, dist):
+                break
+            dist = best
+        nxt = np.full(free.shape, -1, np.int64)      # steepest descent, one neighbour per cell
+        low = np.full(free.shape, np.inf)
+        flat = np.arange(H * W).reshape(H, W)
+        for a, b, l in steps:
+            cand = np.full(free.shape, np.inf)
+            idx = np.full(free.shape, -1, np.int64)
+            src = (slice(max(a, 0), H + min(a, 0)), slice(max(b, 0), W + min(b, 0)))
+            dst = (slice(max(-a, 0), H + min(-a, 0)), slice(max(-b, 0), W + min(-b, 0)))
+            cand[dst], idx[dst] = dist[src], flat[src]
+            better = cand < np.minimum(low, dist)
+            low[better], nxt[better] = cand[better], idx[better]
+        return dist, nxt
+
+    def _blocked(self, inflate, door_margin=DOOR_MARGIN):
+        """Occupancy for planning: furniture and pulled drawers inflated by `inflate`, the open
+        fridge door by door_margin more (a thin panel at the height of the folded arm, which sticks
+        out 0.4 m from the base centre)."""
         p = self.p
         grid = env.occupancy_grid(p["layout"], inflate=inflate)
         res = p["grid_res"]
         X, Y = np.meshgrid((np.arange(grid.shape[0]) + 0.5) * res, (np.arange(grid.shape[1]) + 0.5) * res, indexing="ij")
         for k, rec in enumerate(env.RECEPTACLES):
-            if p["open_fraction"][k] < 0.05:
+            frac = round(p["open_fraction"][k], 1)       # as the cache key
+            if frac < 0.05:
                 continue
             f = self.fur["fridge" if rec == "fridge" else "cabinet"]
             n, lat, face = self._frame(f)
             if rec == "fridge":                  # the door panel as a segment from the hinge
-                th = p["open_fraction"][k] * env.DOOR_RANGE
+                th = frac * env.DOOR_RANGE
                 a = face - lat * f.size[1] / 2
-                b = a + 2 * f.size[1] / 2 * (n * np.sin(th) + lat * np.cos(th))
+                b = a + f.size[1] * (n * np.sin(th) + lat * np.cos(th))
             else:                                # the pulled drawer's front edge
-                a = face + n * p["open_fraction"][k] * env.DRAWER_TRAVEL - lat * f.size[1] / 2
+                a = face + n * frac * env.DRAWER_TRAVEL - lat * f.size[1] / 2
                 b = a + lat * f.size[1]
             ab = b - a
             t = np.clip(((X - a[0]) * ab[0] + (Y - a[1]) * ab[1]) / (ab @ ab), 0, 1)
-            grid |= np.hypot(X - a[0] - t * ab[0], Y - a[1] - t * ab[1]) < inflate
+            grid |= np.hypot(X - a[0] - t * ab[0], Y - a[1] - t * ab[1]) < inflate + (door_margin if rec == "fridge" else 0.0)
         return grid
-
-    def _plan_path(self, start, goal):
-        """A path with NAV_CLEAR of clearance, else with NAV_INFLATE, else straight for the goal. The
-        wider berth leaves a learned navigation room for error around obstacles."""
-        for inflate in (NAV_CLEAR, NAV_INFLATE):
-            path = self._grid_path(start, goal, inflate)
-            if path is not None:
-                return path
-        return [np.asarray(goal[:2])]
-
-    def _grid_path(self, start, goal, inflate):
-        """Shortest 8-connected grid path by a numpy wavefront from the goal, then shortcut; None if
-        there is none."""
-        res = self.p["grid_res"]
-        blocked = self._blocked(inflate)
-        cell = lambda xy: tuple(np.clip((np.asarray(xy) / res).astype(int), 0, np.array(blocked.shape) - 1))
-        s, g = cell(start[:2]), cell(goal[:2])
-        free, static_free = ~blocked, ~self.p["occupancy"]
-        for i, j in (s, g):                      # start and goal may touch the inflation: free a disc
-            disc = slice(max(i - 6, 0), i + 7), slice(max(j - 6, 0), j + 7)
-            free[disc] |= static_free[disc]
-        dist = np.full(free.shape, np.inf)
-        dist[g] = 0
-        front = np.zeros_like(free)
-        front[g] = True
-        k = 0
-        while front.any() and np.isinf(dist[s]):
-            k += 1
-            nb = np.zeros_like(front)
-            nb[1:] |= front[:-1]; nb[:-1] |= front[1:]; nb[:, 1:] |= front[:, :-1]; nb[:, :-1] |= front[:, 1:]
-            nb[1:, 1:] |= front[:-1, :-1]; nb[:-1, :-1] |= front[1:, 1:]; nb[1:, :-1] |= front[:-1, 1:]; nb[:-1, 1:] |= front[1:, :-1]
-            front = nb & free & np.isinf(dist)
-            dist[front] = k
-        if np.isinf(dist[s]):
-            return None
-        path, c = [s], s
-        while c != g:                            # descend the wavefront
-            i, j = c
-            nbrs = [(i + a, j + b) for a in (-1, 0, 1) for b in (-1, 0, 1)
-                    if (a or b) and 0 <= i + a < free.shape[0] and 0 <= j + b < free.shape[1]]
-            c = min(nbrs, key=lambda x: dist[x])
-            path.append(c)
-        pts = [(np.array(c) + 0.5) * res for c in path]
-        out = [pts[0]]                           # shortcut: keep a point only where sight breaks
-        i = 0
-        while i < len(pts) - 1:
-            j = len(pts) - 1
-            while j > i + 1 and not self._line_free(free, pts[i], pts[j], res):
-                j -= 1
-            out.append(pts[j])
-            i = j
-        out[-1] = np.asarray(goal[:2], float)
-        return out
-
-    @staticmethod
-    def _line_free(free, a, b, res):
-        n = int(np.linalg.norm(b - a) / (res / 2)) + 2
-        ij = (np.linspace(a, b, n) / res).astype(int)
-        return bool(free[ij[:, 0], ij[:, 1]].all())
-
-    def _navigate(self, arg):
-        pose, face = arg     # face: (point, reach) to end facing, else the turn to the pose's heading
-        p = self.p
-        path = self._plan_path(p["base"][:2], pose)
-        cfg = self.env.config
-        for _ in range(NAV_TIMEOUT):
-            x, y, yaw = self.p["base"]
-            pos = np.array([x, y])
-            while len(path) > 1 and np.linalg.norm(path[0] - pos) < LOOKAHEAD:
-                path.pop(0)
-            goal_dist = np.linalg.norm(path[-1] - pos)
-            if len(path) == 1 and goal_dist < 0.04:
-                self.following = False
-                yield from (self._turn_to(pose[2]) if face is None else self._settle(*face))
-                return
-            tgt = path[0]
-            err = _wrap(np.arctan2(tgt[1] - y, tgt[0] - x) - yaw)
-            w = np.clip(4.0 * err / cfg.ang_speed, -1, 1)
-            v = 0.0 if abs(err) > 0.5 else np.clip(2.0 * goal_dist, 0.1, 1.0) * np.cos(err)
-            self.following = True               # the drift of DART acts on the path following alone
-            yield self._arm_action(env.ARM_REST, (v, w))
-        self.following = False
-
-    def _turn_to(self, yaw_des, timeout=120):
-        """Turn in place to the heading yaw_des, the arm folded."""
-        for _ in range(timeout):
-            err = _wrap(yaw_des - self.p["base"][2])
-            if abs(err) < 0.04:
-                return
-            yield self._arm_action(env.ARM_REST, (0.0, np.clip(3.0 * err / self.env.config.ang_speed, -0.6, 0.6)))
-
-    def _drive_to(self, pose, timeout=80):
-        """Short straight move along the current heading to the pose's projection (mobile pick/place)."""
-        for _ in range(timeout):
-            x, y, yaw = self.p["base"]
-            h = np.array([np.cos(yaw), np.sin(yaw)])
-            along = (np.asarray(pose[:2]) - [x, y]) @ h
-            if abs(along) < 0.02:
-                return
-            yield self._arm_action(self.p["arm_target"], (np.clip(3 * along, -0.4, 0.4) / self.env.config.lin_speed, 0.0))
-
-    def _reach(self, place):
-        return REACH["drawer" if place.startswith("drawer") else self._furniture(place).kind]
-
-    def _settle(self, point, reach):
-        """End of a navigation to a pick or place: face the point, then drive along the heading
-        until it is `reach` away. Both are functions of what the policy observes (obj_start_polar,
-        goal_polar), so a learned navigation that stopped off the work pose finishes the same way. With jitter
-        (DART) it stops up to `jitter` rad off facing and 0.4 `jitter` m off the distance: a learned
-        navigation stops near, not at, its mark, and the arm's reach must have been shown from there."""
-        yaw_off, reach_off = self.rng.uniform(-1, 1, 2) * [self.jitter, 0.4 * self.jitter] if self.jitter > 0 else (0, 0)
-        for _ in range(120):
-            x, y, yaw = self.p["base"]
-            to = np.asarray(point[:2]) - [x, y]
-            err = _wrap(np.arctan2(to[1], to[0]) + yaw_off - yaw)
-            along = np.linalg.norm(to) - reach - reach_off
-            if abs(err) < 0.04 and abs(along) < 0.02:
-                return
-            w = np.clip(3.0 * err / self.env.config.ang_speed, -0.6, 0.6)
-            v = 0.0 if abs(err) > 0.3 else np.clip(3 * along, -0.4, 0.4) / self.env.config.lin_speed
-            yield self._arm_action(env.ARM_REST, (v, w))
-
-    # --- manipulation skills ---
-
-    def _pick(self, _):
-        k = self.p["target"]
-        place = self.p["episode"].object_places[k]
-        for attempt in range(3):                 # a missed grasp aims 1 cm lower
-            yield from self._approach(place, lambda: self._pick_point(attempt), PICK_TOL, grip=1.0, zone=GRASP_ZONE)
-            if self.p["held"] < 0:
-                yield self._arm_action(self.p["arm_target"], grip=1.0)
-            if self.p["held"] == k:
-                break
-        above = self.p["ee"] + [0, 0, 0.12]
-        yield from self._path_arm([above], DOWN)
-        yield from self._retract()
-        yield from self._rest()
-
-    def _place(self, _):
-        ep = self.p["episode"]
-        k = self.p["target"]
-        if self.p["held"] == k:
-            drop = self._drop_point()
-            yield from self._approach(ep.goal_place, lambda: drop, PLACE_TOL, grip=-1.0, zone=RELEASE_ZONE)
-        for _ in range(3):
-            yield self._arm_action(self.p["arm_target"], grip=-1.0)
-        yield from self._path_arm([self.p["ee"] + [0, 0, 0.1]], DOWN)
-        yield from self._retract()
-        yield from self._rest()
-
-    def _pick_point(self, attempt=0):
-        """Where the pick reaches: just above the target's top (1 cm lower per missed attempt)."""
-        return self.p["objects"][self.p["target"]] + [0, 0, env.OBJ_HALF + 0.005 - 0.01 * attempt]
-
-    def _drop_point(self):
-        """Where the place reaches: the cup 4 cm above the goal, the held object hanging below it."""
-        offset = self.p["ee"] - self.p["objects"][self.p["target"]]
-        return np.asarray(self.p["goal"]) + offset + [0, 0, 0.04]
-
-    def _approach(self, place, point, tol, grip, zone, timeout=150):
-        """Bring the cup, pointing down, to point() (re-read every step) from above, closed loop:
-        every step aims FUNNEL_SLOPE x the horizontal error (at most FUNNEL_HEIGHT) above the point
-        and moves the arm toward the IK solution of that aim found from the measured joints (not
-        from the last solution: the arm is redundant, and a policy cannot see which solution the
-        expert tracked). The label is then a function of the current observation (joints,
-        set-point, target minus cup), not of a hidden waypoint index: with fixed waypoints (top
-        + 15 cm, + 5 cm, top), the learned picks that missed stopped 7-24 cm from the object and
-        commanded the grasp there (README, "The closed-loop reach round").
-
-        Within `zone` of the point the grip command is `grip` (+1 grasp, -1 release), and the
-        approach ends once it has taken effect: the suction takes an object up to 3 cm away
-        (env.GRASP_DIST), so a learned reach that stops a few cm short still grasps, and the grip
-        label is a function of the observed distance, not one step at the end of the reach (with
-        one grasp step, learned picks came within 2-7 cm of the object and never grasped: README)."""
-        for step in range(timeout):
-            pt = np.asarray(point(), float)
-            if np.linalg.norm(pt - self.p["ee"]) < tol or (self.p["held"] >= 0) == (grip > 0):
-                break                           # there, or the grip took effect
-            self.reach_step = step              # DAgger (collect.py --policy) reads where a reach is
-            yield self._reach_step(place, pt, grip, zone)
-        self.reach_step = -1
-
-    def _reach_step(self, place, pt, grip, zone):
-        """One step of _approach's closed-loop reach toward pt -> action."""
-        ee = self.p["ee"]
-        err = pt - ee
-        e_xy = np.linalg.norm(err[:2])
-        aim = pt + [0, 0, min(FUNNEL_HEIGHT, FUNNEL_SLOPE * e_xy)]
-        # reaching out from rest would sweep the forearm (and a held object) through the edge
-        # of a counter higher than the folded cup: first raise the cup in place
-        if self._furniture(place).kind == "surface" and e_xy > 0.15 and ee[2] < pt[2] + FUNNEL_HEIGHT - 0.03:
-            aim = np.array([*ee[:2], pt[2] + FUNNEL_HEIGHT])
-        grip = grip if np.linalg.norm(err) < zone else 0.0
-        return self._arm_action(self._ik(aim, DOWN, q0=self.p["arm"], iters=30), grip=grip)
-
-    def reach_action(self, kind):
-        """The action of the pick ("pick") or place ("place") reach in the current state, outside
-        the plan, or None where that reach does not apply (a pick with something held, a place
-        without the target). evaluate.py --assist reach runs it in place of a policy's arm and
-        grip, to measure what the rest of the policy achieves (README, the DAgger round)."""
-        self.p = p = self.env.privileged()
-        ep = p["episode"]
-        if kind == "pick" and p["held"] < 0:
-            return self._reach_step(ep.object_places[p["target"]], self._pick_point(), 1.0, GRASP_ZONE)
-        if kind == "place" and p["held"] == p["target"]:
-            return self._reach_step(ep.goal_place, self._drop_point(), -1.0, RELEASE_ZONE)
-        return None
-
-    def _retract(self):
-        """Pull the end effector out of a drawer or the fridge before folding the arm."""
-        ee = self.p["ee"]
-        for name in ("fridge", "cabinet"):
-            f = self.fur[name]
-            n, _, face = self._frame(f)
-            if (ee[:2] - face) @ n < 0.1:       # still in front of / inside this piece's face?
-                rel = ee[:2] - np.array(f.center)
-                if np.abs(rel @ np.array([-n[1], n[0]])) < f.size[1] / 2 + 0.1:
-                    out = np.array([*(face + n * 0.2), ee[2]])
-                    yield from self._path_arm([out], None)
-
-    def _open(self, k):
-        rec = env.RECEPTACLES[k]
-        f = self.fur["fridge" if rec == "fridge" else "cabinet"]
-        n, lat, face = self._frame(f)
-        into = np.array([-n[0], -n[1], 0.0])
-        handle = self.p["handles"][k]
-        out = np.array([*n, 0.0])
-        yield from self._path_arm([handle + out * 0.3, handle + out * 0.15, handle + out * 0.05], into)   # clear of the front first
-        # the last 6 cm with the suction on, aiming 1 cm past the handle's axis: the cup takes the
-        # handle on the way in, so a learned reach that falls a few cm short still takes it
-        q = self._ik(handle - out * 0.01, into)
-        for _ in range(30):
-            if self.p["handle"] == k:
-                break
-            yield self._arm_action(q, grip=1.0)
-        if self.p["handle"] == k:
-            if rec == "fridge":
-                yield from self._swing_door(k, f)
-            else:                                # Sec. 3: pull the drawer by backing the base away
-                for _ in range(60):
-                    if self.p["open_fraction"][k] > 0.97:
-                        break
-                    yield self._arm_action(self.p["arm_target"], (-0.3 / self.env.config.lin_speed, 0.0))
-        for _ in range(2):
-            yield self._arm_action(self.p["arm_target"], grip=-1.0)
-        ee = self.p["ee"]
-        if rec == "fridge":                      # off the handle, then out past the door's free edge
-            th = self.p["open_fraction"][k] * env.DOOR_RANGE
-            away = np.array([*(n * np.cos(th) - lat * np.sin(th)), 0.0])
-            panel = np.array([*(n * np.sin(th) + lat * np.cos(th)), 0.0])
-            past = ee + away * 0.05 + panel * 0.2
-            yield from self._path_arm([ee + away * 0.05, past, past - away * 0.25], None)   # round the edge
-            x, y, yaw = self.p["base"]
-            yield from self._drive_to((*(np.array([x, y]) + n * 0.25), yaw))          # room to fold the arm
-        else:                                    # straight back from the drawer handle
-            yield from self._path_arm([ee + np.array([*n, 0.0]) * 0.12], None)
-        yield from self._rest()
-
-    def _swing_door(self, k, f):
-        """Follow the grasp point's arc around the hinge with the arm, the cup square to the door.
-
-        The arc starts where the cup took the handle (the suction's anchor), which with the suction
-        on during the approach can be a few cm off the handle's axis."""
-        n, lat, face = self._frame(f)
-        hinge = face + n * 0.015 - lat * f.size[1] / 2
-        h0 = self.p["ee"]
-        th0 = self.p["open_fraction"][k] * env.DOOR_RANGE
-        a, b = (h0[:2] - hinge) @ n, (h0[:2] - hinge) @ lat
-        r_n, r_l = np.cos(th0) * a - np.sin(th0) * b, np.sin(th0) * a + np.cos(th0) * b   # at angle 0
-        q = self.p["arm"]
-        for th in np.arange(th0 + 0.1, DOOR_TARGET + 1e-6, 0.1):
-            c, s = np.cos(th), np.sin(th)           # the door turns from lat toward n
-            hxy = hinge + n * (r_n * c + r_l * s) + lat * (-r_n * s + r_l * c)
-            into = -np.array([*(n * c - lat * s), 0.0])
-            q = self._ik(np.array([*hxy, h0[2]]), into, q0=q)
-            yield from self._move_arm(q, tol=0.04, timeout=20)
-            if self.p["handle"] != k:
-                return
 
 
 def _wrap(a):
@@ -536,8 +651,8 @@ def _wrap(a):
 # --- command line: success by difficulty, failure reasons, steps per skill ---
 
 def run(args):
-    e = env.RearrangeEnv()
-    x = Expert(e, plan=args.plan, seed=args.seed, noise=args.noise, nav_noise=args.nav_noise, jitter=args.jitter)
+    e = env.RearrangeEnv(perturb=args.perturb, perturb_after=args.perturb_after)
+    x = Expert(e, plan=args.plan, seed=args.seed, noise=args.noise, nav_noise=args.nav_noise)
     eps = env.make_episodes(args.split, args.episodes, seed=args.seed)
     by_diff = collections.defaultdict(list)
     failures = collections.Counter()
@@ -579,7 +694,10 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     docs = env.field_docs(Args)
     for f in dataclasses.fields(Args):
-        p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default, help=docs.get(f.name))
+        if isinstance(f.default, bool):          # no type=bool: --perturb / --no-perturb
+            p.add_argument(f"--{f.name.replace('_', '-')}", action=argparse.BooleanOptionalAction, default=f.default, help=docs.get(f.name))
+        else:
+            p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default, help=docs.get(f.name))
     args = Args(**vars(p.parse_args()))
     if args.split not in env.SPLITS or args.plan not in ("oracle", "fixed"):
         p.error(f"--split must be one of {tuple(env.SPLITS)} and --plan oracle or fixed, got {args.split!r}, {args.plan!r}")

@@ -4,10 +4,13 @@ A shared observation encoder turns each step's depth image and proprioceptive st
 x_t. The Skill Inference module, a causal transformer over x_{t-C+1..t}, predicts the active skill
 (and, for training only, which receptacle holds the target). The Action Inference module, a causal
 transformer over the interleaved tokens (x_t, a_{t-1}, z_t), predicts the whole-body action: arm
-and base means and a 3-way grip distribution. Training uses the true skills as z (teacher forcing,
-Sec. 4.2); a rollout feeds the predicted ones. With ModelConfig.prev_action=False (train.py's
-default) the a_{t-1} tokens are left out: with them the policy learns to copy its last action
-(the copycat problem of behaviour cloning from histories; README, "Results").
+and base means and a 3-way grip distribution. The paper trains with the true skills as z (teacher
+forcing, Sec. 4.2) and a rollout feeds the predicted ones; with ModelConfig.skill_sample > 0 a
+share of the training steps also gets the skill module's own prediction (scheduled sampling,
+Bengio et al. 2015), so that action inference learns to act on the skills it will be given.
+With ModelConfig.prev_action=False (train.py's default) the a_{t-1} tokens are left out: with
+them the policy learns to copy its last action (the copycat problem of behaviour cloning from
+histories, Wen et al. 2020).
 
 Baselines (Sec. 5.2, Sec. 5.5, Appendix C.2), chosen by ModelConfig.variant:
     st        Skill Transformer
@@ -34,11 +37,10 @@ VARIANTS = ("st", "no_skill", "lstm", "dt", "dt_skill")
 # The reach's targets, cup to object and cup to goal in the base frame. Normalised by their spread
 # over whole episodes (horizontal std 1.1-2.5 m, navigation included) a centimetre is ~0.008 of a
 # unit, and the models' 2x64 state MLP fitted on the reach steps then misses in closed loop: 16 of
-# 50 picks held, 50 of 50 with these vectors also at 10 cm scale (README, "The near-features round").
+# 50 picks held, 50 of 50 with these vectors also at 10 cm scale (ModelConfig.near_scale).
 NEAR_FIELDS = ("obj_start", "goal")
 _offsets = np.cumsum([0] + [n for _, n in env.STATE_LAYOUT])
 NEAR_INDEX = [i for (name, n), o in zip(env.STATE_LAYOUT, _offsets) if name in NEAR_FIELDS for i in range(o, o + n)]
-ENCODERS = ("cnn", "resnet18")
 
 
 @dataclass
@@ -51,22 +53,16 @@ class ModelConfig:
     n_skills: int = len(env.SKILLS)
     """skill classes: navigate, pick, place, open_drawer, open_fridge"""
     n_receptacles: int = len(env.RECEPTACLES) + 1
-    """auxiliary receptacle classes: 0 = target not in a closed receptacle, i = i-th receptacle"""
+    """auxiliary receptacle classes (y^pred, Sec. 4.2): 0 = target not in a receptacle, i = in the i-th"""
     context: int = 30
     """context length C in steps (Sec. 4.1: C = 30); action inference sees 3C tokens (2C without a_{t-1})"""
     d_vis: int = 64
     """visual embedding size (paper: 256)"""
     d_state: int = 64
     """state embedding size (paper: 256)"""
-    state_hidden: int = 0
-    """hidden width of a 3-layer state MLP; 0: the 2-layer MLP of width d_state (the default, and
-    what checkpoints without this field hold). 256 fit the reach's labels better, picked less
-    (README, "The state-MLP round")"""
-    near_scale: float = 0.0
+    near_scale: float = 0.1
     """metres: with > 0 the state MLP also reads tanh(v / near_scale) of the cup-to-object and
-    cup-to-goal vectors (NEAR_FIELDS), a view at centimetre resolution; 0: off (what checkpoints
-    without this field hold): see NEAR_FIELDS and README, "The near-features round"
-    """
+    cup-to-goal vectors (NEAR_FIELDS), a view at centimetre resolution for the reach; 0: off"""
     d_model: int = 128
     """transformer width (paper: 512; 128 keeps a rollout step under 5 ms on one CPU core)"""
     n_layer: int = 2
@@ -75,27 +71,22 @@ class ModelConfig:
     """attention heads"""
     dropout: float = 0.0
     """dropout in the transformer blocks (the Decision Transformer used 0.1)"""
-    encoder: str = "cnn"
-    """depth encoder: cnn (small, fast on a CPU) or resnet18 (the paper's, with GroupNorm)"""
     variant: str = "st"
     """st, no_skill, lstm, dt or dt_skill"""
     prev_action: bool = True
-    """a_{t-1} tokens in action inference; False leaves them out (train.py --action-dropout 1)"""
-    skill_first: bool = False
-    """st/lstm: order each step's action tokens (z_t, a_{t-1}, x_t) and read the action from x_t's
-    token, whose residual stream carries the observation; False: the paper's (x_t, a_{t-1}, z_t),
-    read from z_t's token, to which attention must first copy x_t (README, "The skill-module round")"""
-    detach_skill_input: bool = False
-    """st/lstm: the skill and receptacle losses do not train the shared encoder (skill inference
-    reads x_t.detach()); False: end to end, as the paper (Sec. 4.2)"""
+    """a_{t-1} tokens in action inference, as the paper; False leaves them out (train.py's default)"""
+    skill_sample: float = 0.5
+    """st/lstm, training only: each step's z_t is, with this probability, the skill module's own
+    (detached) argmax instead of the true skill (scheduled sampling), as a rollout feeds it;
+    0: pure teacher forcing, as the paper (Sec. 4.2)"""
 
 
 # --- observation encoders (Sec. 4.1 "Input") ---
 
 class SmallCNN(nn.Module):
     """A 4x4 stride-4 "patchify" convolution, strided 3x3 convolutions down to about 4x4, and a
-    linear layer: the fast default encoder. Channels-last weights and inputs make the CPU
-    convolutions ~3x faster (oneDNN)."""
+    linear layer: a fast stand-in for the paper's ResNet-18 on a CPU. Channels-last weights and
+    inputs make the CPU convolutions ~3x faster (oneDNN)."""
 
     def __init__(self, size, out_dim):
         super().__init__()
@@ -109,43 +100,6 @@ class SmallCNN(nn.Module):
     def forward(self, x):  # (N, 1, H, W) -> (N, out_dim)
         h = self.convs(x.contiguous(memory_format=torch.channels_last))
         return F.relu(self.fc(h.flatten(1)))
-
-
-class BasicBlock(nn.Module):
-    """ResNet basic block (He et al. 2016) with GroupNorm, as Habitat's depth encoders use."""
-
-    def __init__(self, cin, cout, stride):
-        super().__init__()
-        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
-        self.gn1 = nn.GroupNorm(cout // 16, cout)
-        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
-        self.gn2 = nn.GroupNorm(cout // 16, cout)
-        self.down = None
-        if stride != 1 or cin != cout:
-            self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False),
-                                      nn.GroupNorm(cout // 16, cout))
-
-    def forward(self, x):
-        y = self.gn2(self.conv2(F.relu(self.gn1(self.conv1(x)))))
-        return F.relu(y + (x if self.down is None else self.down(x)))
-
-
-class ResNet18(nn.Module):
-    """ResNet-18 (Sec. 4.1: the paper's visual encoder) on one depth channel, ~11M parameters."""
-
-    def __init__(self, out_dim):
-        super().__init__()
-        self.stem = nn.Sequential(nn.Conv2d(1, 64, 7, 2, 3, bias=False), nn.GroupNorm(4, 64), nn.ReLU(),
-                                  nn.MaxPool2d(3, 2, 1))
-        blocks, cin = [], 64
-        for cout, stride in ((64, 1), (128, 2), (256, 2), (512, 2)):
-            blocks += [BasicBlock(cin, cout, stride), BasicBlock(cout, cout, 1)]
-            cin = cout
-        self.blocks = nn.Sequential(*blocks, nn.AdaptiveAvgPool2d(1), nn.Flatten())
-        self.fc = nn.Linear(512, out_dim)
-
-    def forward(self, x):  # (N, 1, H, W) -> (N, out_dim)
-        return F.relu(self.fc(self.blocks(self.stem(x))))
 
 
 # --- sequence backbones (nanoGPT blocks; an LSTM for the lstm baseline) ---
@@ -227,17 +181,17 @@ class SkillTransformer(nn.Module):
         super().__init__()
         if cfg.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {cfg.variant!r}")
-        if cfg.encoder not in ENCODERS:
-            raise ValueError(f"encoder must be one of {ENCODERS}, got {cfg.encoder!r}")
+        if not 0 <= cfg.skill_sample <= 1:
+            raise ValueError(f"skill_sample must lie in [0, 1], got {cfg.skill_sample}")
         if cfg.d_model % cfg.n_head:
             raise ValueError(f"d_model ({cfg.d_model}) must be divisible by n_head ({cfg.n_head})")
         self.cfg = cfg
         v = cfg.variant
         # Sec. 4.1: depth -> visual embedding, state -> MLP embedding, concatenated into x_t.
-        self.vis = SmallCNN(cfg.depth_size, cfg.d_vis) if cfg.encoder == "cnn" else ResNet18(cfg.d_vis)
-        H, d_in = cfg.state_hidden, cfg.state_dim + (len(NEAR_INDEX) if cfg.near_scale > 0 else 0)
-        widths = (d_in, H, H, cfg.d_state) if H else (d_in, cfg.d_state, cfg.d_state)
-        self.state_mlp = nn.Sequential(*[m for i, o in zip(widths, widths[1:]) for m in (nn.Linear(i, o), nn.ReLU())])
+        self.vis = SmallCNN(cfg.depth_size, cfg.d_vis)
+        d_in = cfg.state_dim + (len(NEAR_INDEX) if cfg.near_scale > 0 else 0)
+        self.state_mlp = nn.Sequential(nn.Linear(d_in, cfg.d_state), nn.ReLU(),
+                                       nn.Linear(cfg.d_state, cfg.d_state), nn.ReLU())
         d_tok = cfg.d_vis + cfg.d_state  # a linear map takes x_t to d_model if the sizes differ
         self.tok_proj = nn.Identity() if d_tok == cfg.d_model else nn.Linear(d_tok, cfg.d_model)
         self.pos_emb = nn.Parameter(torch.zeros(1, cfg.context, cfg.d_model))  # per-timestep, Sec. 4.1
@@ -288,7 +242,6 @@ class SkillTransformer(nn.Module):
         (T = 1 with last_only: the current step alone, for a rollout).
 
         Left padding (mask False) becomes a zero token, exactly as in a rollout's first C steps."""
-        x = x.detach() if self.cfg.detach_skill_input else x
         h = self.skill_net(x * mask[..., None] + self.pos_emb[:, :x.shape[1]], last_only)
         return self.skill_head(h), self.aux_head(h)
 
@@ -299,8 +252,7 @@ class SkillTransformer(nn.Module):
         v, (B, T, D) = self.cfg.variant, x.shape
         a = (self.act_emb(prev_action),) if self.cfg.prev_action else ()  # without it: (x_t, z_t) etc.
         if v in ("st", "lstm"):
-            z = self.skill_emb(skill)
-            toks = (z, *a, x) if self.cfg.skill_first else (x, *a, z)  # (x_t, a_{t-1}, z_t), Sec. 4.1
+            toks = (x, *a, self.skill_emb(skill))  # (x_t, a_{t-1}, z_t), Sec. 4.1
         elif v == "no_skill":
             toks = (x, *a)
         else:
@@ -316,18 +268,24 @@ class SkillTransformer(nn.Module):
         return out
 
     def forward(self, batch):
-        """Training pass with teacher forcing (Sec. 4.2): the true skills are the z_t tokens."""
+        """Training pass (Sec. 4.2): the true skills are the z_t tokens (teacher forcing), except,
+        in training mode, at a random skill_sample share of the steps, where z_t is the skill
+        module's own argmax at that step. It depends on x_{<=t} alone, so causality holds."""
         x = self.embed_obs(batch["depth"], batch["state"])
-        out = {}
+        out, skill = {}, batch.get("skill")
         if self.has_skill_module:
             out["skill_logits"], out["aux_logits"] = self.infer_skill(x, batch["mask"])
-        out.update(self.infer_action(x, batch["prev_action"], batch["mask"],
-                                     skill=batch.get("skill"), rtg=batch.get("rtg")))
+            if self.training and self.cfg.skill_sample > 0:   # scheduled sampling
+                own = out["skill_logits"].detach().argmax(-1)                       # (B, T)
+                sample = torch.rand(skill.shape, device=skill.device) < self.cfg.skill_sample
+                skill = torch.where(sample, own, skill)
+        out.update(self.infer_action(x, batch["prev_action"], batch["mask"], skill=skill, rtg=batch.get("rtg")))
         return out
 
-    def compute_loss(self, out, batch):
-        """Sec. 4.2: focal loss (skills, grip) + MSE (arm, base) + CE (aux), unweighted sum, each
-        averaged over the valid (unpadded) steps of the window. Returns a dict with "loss"."""
+    def compute_loss(self, out, batch, skill_weight=1.0, aux_weight=1.0):
+        """Sec. 4.2: focal loss (skills, grip) + MSE (arm, base) + CE (aux), each averaged over the
+        valid (unpadded) steps of the window. Returns a dict of the terms and "loss", their sum with
+        the skill and aux terms weighted (the paper's unweighted sum: both weights 1)."""
         m = batch["mask"].float()
         mean = lambda l: (l * m).sum() / m.sum().clamp(min=1.0)
         act = batch["action"]
@@ -341,8 +299,14 @@ class SkillTransformer(nn.Module):
             aux = F.cross_entropy(out["aux_logits"].float().flatten(0, 1), batch["receptacle"].flatten(),
                                   reduction="none").view_as(m)
             losses["aux"] = mean(aux)  # Eq. 3
-        losses["loss"] = sum(losses.values())
+        weight = {"skill": skill_weight, "aux": aux_weight}
+        losses["loss"] = sum(weight.get(k, 1.0) * v for k, v in losses.items())
         return losses
+
+    def encoder_parameters(self):
+        """The shared observation encoder's parameters (CNN, state MLP, token projection): what
+        both modules read, where train.py measures each loss term's gradient."""
+        return [p for m in (self.vis, self.state_mlp, self.tok_proj) for p in m.parameters()]
 
     def num_params(self):
         return sum(p.numel() for p in self.parameters())
@@ -379,7 +343,8 @@ def model_from_checkpoint(ckpt, device="cpu"):
     try:
         cfg = ModelConfig(**ckpt["model_args"])
     except TypeError as e:
-        raise ValueError(f"checkpoint model_args do not match ModelConfig: {e}") from e
+        raise ValueError(f"checkpoint model_args do not match ModelConfig ({e}): it was written by an "
+                         "older version of model.py; retrain it") from e
     m = SkillTransformer(cfg)
     m.load_state_dict(ckpt["model"])
     return m.to(device)

@@ -3,6 +3,7 @@ tiny end-to-end run of every script as a subprocess.
 
     python -m pytest test_all.py -q
 """
+import csv
 import dataclasses
 import glob
 import itertools
@@ -343,112 +344,62 @@ class _StillPolicy:
         return np.zeros(env.ACTION_DIM, np.float32), -1
 
 
-def test_dagger_policy_drives_the_start_of_each_reach_and_the_expert_labels_it():
-    """collect.py --policy: in the first dagger_steps steps of a pick or place reach the env runs
-    the policy's action (here none: the arm stays put) while the demo stores the expert's; then the
-    expert takes over from where the policy left the arm and still solves the episode."""
-    e = env.RearrangeEnv(depth_size=8)
+def test_dagger_the_policy_drives_whole_segments_and_the_expert_labels_every_step():
+    """collect.py --policy: the stored action is always the expert's label; the env runs the policy's
+    action (here: stand still) in each segment the expert (probability beta) does not drive. beta 1
+    gives the expert's own demo, beta 0 a robot that never moves under labels that drive on."""
+    e = env.RearrangeEnv(depth_size=8, max_steps=200)
     ep = _first("easy", lambda ep: True)
-    plain = collect.record_episode(e, ep, 0, 0.0)
-    data = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=15)
-    assert plain["success"] and data["success"]
-    for name in ("pick", "place"):
-        steps = np.flatnonzero(data["skill"] == env.SKILL_IDS[name])
-        joint_target = data["state"][steps[:16], 7:14]                 # before and after 15 still steps
-        assert np.abs(np.diff(joint_target, axis=0)).max() == 0, name
-        assert np.abs(data["action"][steps[:15], :7]).max() > 0.5, name   # the labels move the arm
-        assert np.abs(data["state"][steps[17], 7:14] - joint_target[-1]).max() > 0, name   # then it moves
-        assert len(steps) > np.sum(plain["skill"] == env.SKILL_IDS[name]), name
+    plain = collect.record_episode(e, ep, 0, noise=0.1)
+    by_expert = collect.record_episode(e, ep, 0, noise=0.1, policy=_StillPolicy(), beta=1.0)
+    assert sorted(plain) == sorted(by_expert) and all(np.array_equal(plain[k], by_expert[k]) for k in plain)
+    still = collect.record_episode(e, ep, 0, noise=0.1, policy=_StillPolicy())   # beta 0: the policy drives
+    assert len(still["action"]) == 200 and not still["success"]
+    assert np.ptp(still["state"], axis=0).max() < 1e-6              # nothing moved, not even the noise
+    assert np.array_equal(still["action"][0], plain["action"][0])    # the same state, the same label ...
+    assert (np.abs(still["action"][:, :9]).max(1) > 0.05).all()      # ... which moves on every step
+    mixed = collect.record_episode(e, ep, 0, noise=0.1, policy=_StillPolicy(), beta=0.5, segment=10)
+    moved = np.abs(np.diff(mixed["state"][:, 7:14], axis=0)).max(1) > 0   # the noised expert moves the arm
+    segments = moved[:len(moved) // 10 * 10].reshape(-1, 10)              # step t's driver moved it or not
+    assert (segments.all(1) | ~segments.any(1)).all()                      # one driver per segment
+    assert 0 < segments.all(1).sum() < len(segments)                       # and both drove
 
 
-def test_dagger_radius_hands_the_end_of_the_navigation_to_the_policy():
-    """collect.py --dagger-radius: for dagger_steps steps after the base comes within the radius of
-    the object, the env runs the policy's action (here: stand still) and the demo stores the
-    expert's, which drives on; then the expert drives from there and still solves the episode."""
+def test_perturbation_events_apply_where_they_should_and_the_expert_recovers():
+    """collect.py --events: at the start only a push applies; a receptacle is shut only while the arm is
+    out of it, the target dropped only above a surface or receptacle. The expert, a function of the
+    state, recovers from each (reopens, drives back, picks again) and solves the episode."""
     e = env.RearrangeEnv(depth_size=8)
-    ep = _first("easy", lambda ep: True)
-    plain = collect.record_episode(e, ep, 0, 0.0)
-    data = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=20, dagger_radius=1.5)
-    assert plain["success"] and data["success"]
-    dist = data["state"][:, 24]                                       # obj_start_polar: distance
-    near = np.flatnonzero(dist < 1.5)[:25]
-    assert (data["skill"][near] == env.SKILL_IDS["navigate"]).all()
-    assert np.ptp(dist[near[3:20]]) < 0.02 and dist[near[24]] < dist[near[19]] - 0.02   # still, then on
-    assert np.abs(data["action"][near[:20], env.BASE]).max(1).min() > 0.05   # the expert's label: drive on
-
-
-def test_dagger_open_hands_the_end_of_the_navigation_to_an_opening_to_the_policy():
-    """collect.py --dagger-open: the same hand-off for each navigation to a drawer or the fridge. The
-    policy (here: stand still) holds the base for dagger_steps steps near the opening pose while the
-    labels drive on; without the flag it never drives before the first opening. The expert solves both."""
-    e = env.RearrangeEnv(depth_size=8)
-    ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
-
-    def still_driving(data):   # longest run of steps before the first opening: base still, label driving
-        first_open = np.flatnonzero(data["skill"] == env.SKILL_IDS["open_drawer"])[0]
-        polar, base = data["state"][:first_open, 24:26], np.abs(data["action"][:first_open, env.BASE]).max(1)
-        run = best = 0
-        for t in range(1, first_open):
-            run = run + 1 if np.abs(polar[t] - polar[t - 1]).max() < 1e-3 and base[t] > 0.05 else 0
-            best = max(best, run)
-        return best
-
-    plain = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=20, dagger_radius=1.5)
-    data = collect.record_episode(e, ep, 0, 0.0, policy=_StillPolicy(), dagger_steps=20, dagger_radius=1.5,
-                                  dagger_open=True)
-    assert plain["success"] and data["success"]
-    assert still_driving(plain) < 3 and still_driving(data) >= 12   # of 20: the base first slows down
-
-
-class _SkillPolicy:
-    """Stands in for a trained policy: always the same skill, a base command and a still arm."""
-
-    def __init__(self, skill):
-        self.skill = skill
-
-    def reset(self):
-        pass
-
-    def act_batch(self, obs, rewards):
-        return np.array([[0, 0, 0, 0, 0, 0, 0, 0.3, 0.1, 0]] * len(obs), np.float32), [self.skill] * len(obs)
-
-
-def test_reach_assist_takes_over_the_arm_of_a_predicted_pick_only():
-    """evaluate.py --assist reach: the expert's reach sets arm and grip while the policy predicts
-    pick with nothing held (or place with the target held), and nothing else."""
-    e, obs, x = _oracle_on_first_easy()
-    want = x.reach_action("pick")
-    assert np.abs(want[env.ARM]).max() > 0.5
-    for skill in ("pick", "navigate", "place"):                      # nothing is held yet
-        policy = evaluate.ReachAssist(_SkillPolicy(env.SKILL_IDS[skill]), [e])
-        policy.reset()
-        actions, skills = policy.act_batch([obs], [0.0])
-        assert skills == [env.SKILL_IDS[skill]] and np.allclose(actions[0][env.BASE], [0.3, 0.1])
-        if skill == "pick":
-            assert np.allclose(actions[0][env.ARM], want[env.ARM]) and actions[0][env.GRIP] == want[env.GRIP]
-        else:
-            assert not actions[0][env.ARM].any() and actions[0][env.GRIP] == 0, skill
-
-
-def test_handover_runs_the_expert_until_its_plan_reaches_the_skill():
-    """evaluate.py --handover pick: the oracle's actions until the first step of its pick, the
-    policy's from that step on."""
-    ep = _first("easy", lambda ep: True)
-    envs = [env.RearrangeEnv(depth_size=8) for _ in range(2)]
-    obs = [e.reset(seed=0, options={"episode": ep})[0] for e in envs]
-    policy = evaluate.Handover(_SkillPolicy(env.SKILL_IDS["navigate"]), envs[:1], "pick")
-    policy.reset()
-    twin = expert.Expert(envs[1])                                     # the same expert on a twin env
-    twin.reset()
-    for t in range(800):
-        (action,), _ = policy.act_batch(obs[:1], [0.0])
-        want, skill = twin.act(obs[1])
-        if skill == env.SKILL_IDS["pick"]:
-            break
-        np.testing.assert_array_equal(action, want)
-        obs = [e.step(a)[0] for e, a in zip(envs, (action, want))]
-    assert skill == env.SKILL_IDS["pick"] and t > 20                  # the expert drove to the pick ...
-    assert np.allclose(action[env.BASE], [0.3, 0.1]) and not action[env.ARM].any()   # ... the policy picks
+    for ep in (_first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer")),
+               _first("object_closed", lambda ep: ep.object_places[ep.target] == "fridge")):
+        obs, info = e.reset(seed=0, options={"episode": ep})
+        x = expert.Expert(e, plan="oracle")
+        x.reset()
+        done, struck = False, {}
+        while not done:
+            action, _ = x.act(obs)
+            events = collect.applicable_events(e, x)
+            if not struck:
+                assert list(events) == ["push"], events
+            kind = next((k for k in events if k not in struck), None)   # each kind once, when it first applies
+            p = e.privileged()
+            if kind == "shut":
+                r = events["shut"][0]
+                assert np.linalg.norm(p["ee"] - p["handles"][r]) > collect.SHUT_CLEAR
+                e.close_receptacle(r)
+                assert e.open_fraction()[r] == 0
+            elif kind == "push":
+                assert any(e.push_base(0.2 * np.cos(a), 0.2 * np.sin(a), 0.1) for a in np.linspace(0, 6, 12))
+                assert np.isclose(np.linalg.norm(e.privileged()["base"][:2] - p["base"][:2]), 0.2)
+            elif kind == "drop":
+                assert x._support(p["objects"][p["target"]]) != "floor"
+                e.drop()
+                assert e.privileged()["held"] == -1
+            if kind:
+                struck[kind] = info["steps"]
+            obs, _, terminated, truncated, info = e.step(action)
+            done = terminated or truncated
+        assert sorted(struck) == sorted(collect.EVENTS) and info["success"], (ep.object_places[ep.target], struck, info)
 
 
 def test_is_holding_covers_a_grasped_handle():
@@ -527,12 +478,12 @@ def test_collect_round_trip(demos):
         shapes = {"depth": ((T, DEPTH, DEPTH), np.uint8), "state": ((T, env.STATE_DIM), np.float32),
                   "action": ((T, env.ACTION_DIM), np.float32), "skill": ((T,), np.int8),
                   "receptacle": ((T,), np.int8), "reward": ((T,), np.float32),
-                  "success": ((), np.bool_), "layout": ((), np.int64), "seed": ((), np.int64),
-                  "index": ((), np.int64)}
+                  "events": ((len(collect.EVENTS),), np.int64), "success": ((), np.bool_),
+                  "layout": ((), np.int64), "seed": ((), np.int64), "index": ((), np.int64)}
         for key, (shape, dtype) in shapes.items():
             assert d[key].shape == shape and d[key].dtype == dtype, (key, d[key].shape, d[key].dtype)
         assert d["difficulty"].shape == () and str(d["difficulty"]) in env.DIFFICULTIES
-        assert bool(d["success"])                                  # default: successful demos only
+        assert bool(d["success"]) and not d["events"].any()        # default: successful demos only, no events
         assert int(d["index"]) == int(name[3:9])
         ep = env.make_episodes("train", int(d["index"]) + 1, seed=0)[int(d["index"])]
         assert int(d["layout"]) == ep.layout and str(d["difficulty"]) == ep.difficulty
@@ -543,10 +494,21 @@ def test_collect_round_trip(demos):
         collect.load_episode(demos / name)
     meta = json.loads((demos / "meta.json").read_text())
     assert meta["env_config"]["depth_size"] == DEPTH and meta["seed"] == 0 and meta["noise"] == 0.0
+    assert meta["format"] == collect.FORMAT_VERSION == 2 and meta["events"] == 0.0 and meta["policy"] is None
     assert meta["skills"] == list(env.SKILLS) and meta["state_layout"][0] == ["joint", 7]
     assert {"python", "numpy", "mujoco"} <= set(meta["versions"])
     stats = run("collect.py", "--stats", demos).stdout
     assert "3 episodes" in stats and "success 100.0%" in stats and "navigate" in stats
+    assert "still labels" in stats and "events per episode: shut 0.00, push 0.00, drop 0.00" in stats
+    s = collect.dataset_stats(demos)
+    assert 0 <= s["still_share"] < 0.5 and s["events_per_episode"] == dict.fromkeys(collect.EVENTS, 0.0)
+
+
+def test_still_steps():
+    a = np.zeros((4, env.ACTION_DIM), np.float32)
+    a[1, 3], a[2, 8], a[3, env.GRIP] = 0.05, -0.03, 1.0
+    a[0, :9] = 0.019
+    assert collect.still_steps(a).tolist() == [True, False, False, False]
 
 
 def test_collect_same_with_two_workers(demos, tmp_path):
@@ -586,6 +548,10 @@ def test_collect_refuses_corrupt_foreign_and_mismatched(demos, tmp_path):
     assert p.returncode != 0 and "meta.json" in p.stderr and "seed" in p.stderr
     p = run("collect.py", "--episodes", 2, "--out", out, "--depth-size", 24, check=False)
     assert p.returncode != 0 and "env_config" in p.stderr
+    old = {k: v for k, v in collect.load_episode(out / "ep_000000.npz").items() if k != "events"}
+    np.savez(tmp_path / "ep_000001.npz", **old)                     # format 1: no events
+    with pytest.raises(ValueError, match=r"ep_000001.npz: missing keys \['events'\]"):
+        collect.load_episode(tmp_path / "ep_000001.npz")
     with pytest.raises(ValueError, match="ep_000000.npz"):
         bad = dict(collect.load_episode(out / "ep_000000.npz"), reward=np.full(3, np.nan, np.float32))
         np.savez(tmp_path / "ep_000000.npz", **bad)
@@ -604,6 +570,21 @@ def test_collect_keep_failed_shards_and_give_up(tmp_path):
     p = collect_run(tmp_path / "none", 1, "--max-draws", 2, *short, check=False)
     assert p.returncode != 0 and "only 0/1 demonstrations after 2" in p.stderr
     assert not [n for n in os.listdir(tmp_path / "none") if n != "meta.json"]
+
+
+def test_collect_with_events_is_deterministic(demos, tmp_path):
+    """--events: perturbation events during collection, counted per kind in each file and recorded in
+    meta.json; the same seed gives the same bytes with one worker or two."""
+    collect_run(tmp_path / "a", 3, "--events", 5, "--noise", 0.1, "--workers", 1)
+    collect_run(tmp_path / "b", 3, "--events", 5, "--noise", 0.1, "--workers", 2)
+    a = read_dir(tmp_path / "a")
+    assert_same(a, read_dir(tmp_path / "b"))
+    assert all(bool(d["success"]) for d in a.values()) and sum(int(d["events"].sum()) for d in a.values()) > 0
+    assert json.loads((tmp_path / "a" / "meta.json").read_text())["events"] == 5.0
+    p = collect_run(tmp_path / "a", 3, "--events", 2, "--noise", 0.1, check=False)
+    assert p.returncode != 0 and "events" in p.stderr                # another rate is another dataset
+    p = collect_run(tmp_path / "x", 3, "--events", -1, check=False)
+    assert p.returncode != 0 and "--events is a rate per 1,000 steps" in p.stderr
 
 
 # --- evaluate.py ---
@@ -693,20 +674,31 @@ def checkpoints(tmp_path_factory):
 
 
 def test_collect_with_a_policy(checkpoints, tmp_path):
-    """--policy (DAgger) runs the checkpoint in the workers, records it in meta.json, and refuses a
-    missing checkpoint or one trained on another env config."""
-    collect_run(tmp_path / "d", 1, "--max-steps", 25, "--keep-failed", "--policy", checkpoints[0], "--workers", 2)
+    """--policy (DAgger) runs the checkpoint in the workers, keeps every episode (solved or not: the
+    labels are valid either way) and records policy, beta and segment in meta.json; with --beta 1 the
+    expert drives and the files are those of a plain collection. It refuses a missing checkpoint, one
+    trained on another env config, and --beta without a policy."""
+    short = ("--max-steps", 25, "--noise", 0.1)                     # the checkpoints' env config
+    collect_run(tmp_path / "d", 2, *short, "--policy", checkpoints[0], "--workers", 2)
     meta = json.loads((tmp_path / "d" / "meta.json").read_text())
-    assert meta["policy"] == checkpoints[0] and meta["dagger_steps"] == 60
-    assert len([n for n in os.listdir(tmp_path / "d") if n.endswith(".npz")]) == 1
-    again = collect_run(tmp_path / "d", 1, "--max-steps", 25, "--keep-failed", check=False)
+    assert (meta["policy"], meta["beta"], meta["segment"], meta["keep_failed"]) == (checkpoints[0], 0.0, 10, True)
+    dagger = read_dir(tmp_path / "d")
+    assert len(dagger) == 2 and not any(bool(d["success"]) for d in dagger.values())
+    collect_run(tmp_path / "plain", 2, *short, "--keep-failed", "--workers", 1)
+    plain = read_dir(tmp_path / "plain")
+    collect_run(tmp_path / "b1", 2, *short, "--policy", checkpoints[0], "--beta", 1.0, "--workers", 1)
+    assert_same(plain, read_dir(tmp_path / "b1"))
+    for name in plain:                                              # the same first state and label,
+        assert np.array_equal(dagger[name]["action"][0], plain[name]["action"][0])
+        assert not np.array_equal(dagger[name]["state"], plain[name]["state"])   # then the policy led
+    again = collect_run(tmp_path / "d", 2, *short, "--keep-failed", check=False)
     assert again.returncode != 0 and "policy" in again.stderr        # resuming needs the same policy
     bad = collect_run(tmp_path / "x", 1, "--policy", tmp_path / "none.pt", check=False)
     assert bad.returncode != 0 and "checkpoint not found" in bad.stderr
-    bad = collect_run(tmp_path / "x", 1, "--dagger-radius", 1.5, check=False)
-    assert bad.returncode != 0 and "--dagger-radius must be >= 0 and needs --policy" in bad.stderr
-    bad = collect_run(tmp_path / "x", 1, "--policy", checkpoints[0], "--dagger-open", check=False)
-    assert bad.returncode != 0 and "--dagger-open needs --dagger-radius" in bad.stderr
+    bad = collect_run(tmp_path / "x", 1, "--beta", 0.5, check=False)
+    assert bad.returncode != 0 and "without --policy" in bad.stderr
+    bad = collect_run(tmp_path / "x", 1, "--policy", checkpoints[0], "--beta", 2, *short, check=False)
+    assert bad.returncode != 0 and "--beta must be in [0, 1]" in bad.stderr
     bad = collect_run(tmp_path / "y", 1, "--policy", checkpoints[0], check=False)   # max_steps 1500 vs 25
     assert bad.returncode != 0 and "max_steps" in bad.stderr
 
@@ -725,21 +717,29 @@ def test_evaluate_checkpoints(checkpoints, tmp_path):
     assert {r["failure"] for r in res["rollouts"]} <= {"timeout", "collision", "collision_accum"}
     assert 0 <= joined["skill_accuracy"]["mean"] <= 100
     assert res["methods"][0]["setting"]["context"] == 4 and res["methods"][0]["setting"]["variant"] == "st"
-    rate = evaluate.success_check(checkpoints[0], 2)
-    assert isinstance(rate, float) and rate == 0.0                        # untrained: no success in 25 steps
 
 
-def test_evaluate_with_the_experts_reach(checkpoints, tmp_path):
-    out = tmp_path / "as.json"
-    run("evaluate.py", "--policy", checkpoints[0], "--episodes", 2, "--workers", 1, "--assist", "reach", "--out", out)
+def test_evaluate_labels_the_policy_states_with_the_oracle_skill(checkpoints, tmp_path):
+    """Beside a policy's rollout an oracle expert labels each state: skill accuracy against that
+    label and the share of opening skills on easy episodes, per rollout and in the tables; the
+    oracle's own rollout agrees with its labeller on every step (the same skill for the same state)."""
+    out = tmp_path / "lab.json"
+    run("evaluate.py", "--policy", checkpoints[0], "--policy", "expert:oracle", "--episodes", 2,
+        "--difficulty", "easy", "--workers", 1, "--depth-size", DEPTH, "--max-steps", 25, "--out", out)
     res = json.loads(out.read_text())
-    assert res["methods"][0]["name"] == f"st ({checkpoints[0]}) + expert reach" and len(res["rollouts"]) == 2
-    bad = run("evaluate.py", "--policy", checkpoints[0], "--assist", "arm", "--out", out, check=False)
-    assert bad.returncode != 0 and "--assist must be reach" in bad.stderr
-    run("evaluate.py", "--policy", checkpoints[0], "--episodes", 2, "--workers", 1, "--handover", "pick", "--out", out)
-    assert json.loads(out.read_text())["methods"][0]["name"] == f"st ({checkpoints[0]}) from the expert's pick"
-    bad = run("evaluate.py", "--policy", checkpoints[0], "--handover", "navigate", "--out", out, check=False)
-    assert bad.returncode != 0 and "--handover must be one of" in bad.stderr
+    policy, oracle = (m["results"]["unseen"]["no_perturb"] for m in res["methods"])
+    for r in res["rollouts"]:
+        assert r["kind"] == "easy" and r["skill_predicted"] == r["steps"] > 0
+        assert 0 <= r["skill_correct_expert"] <= r["steps"] and 0 <= r["skill_opening"] <= r["steps"]
+    mine = [r for r in res["rollouts"] if r["method"] == 0]
+    want = 100.0 * sum(r["skill_opening"] for r in mine) / sum(r["steps"] for r in mine)
+    assert policy["opening_share_easy"]["mean"] == pytest.approx(want)
+    assert 0 <= policy["skill_accuracy_expert"]["mean"] <= 100
+    assert oracle["skill_accuracy_expert"]["mean"] == 100.0 and oracle["opening_share_easy"]["mean"] == 0.0
+    header, rows = parse_markdown_table((tmp_path / "lab.md").read_text(), "Details: unseen")
+    assert "Skill accuracy (expert label)" in header and "Opening skill on easy" in header
+    col = header.index("Opening skill on easy")
+    assert rows[0][col] == evaluate.fmt(policy["opening_share_easy"])
 
 
 def test_evaluate_checkpoint_errors(tmp_path):
@@ -766,7 +766,7 @@ def test_spread_over_training_or_rollout_seeds():
 def test_fig3_panels_and_plot(tmp_path):
     """Each Fig. 3 panel is the reference run plus the runs that differ from it in that setting only."""
     def run_(name, **changes):
-        setting = dict(dict(variant="st", context=30, n_demos=1000, segments="", epochs=75, init=False), **changes)
+        setting = dict(dict(variant="st", context=30, n_demos=1000, segments="", epochs=150), **changes)
         stat = {"mean": float(len(name)), "std": 0.0}
         return {"name": name, "setting": setting,
                 "results": {"unseen": {"no_perturb": {"success_all": stat, "picked": stat}}}}
@@ -892,35 +892,9 @@ def test_output_shapes(variant):
         assert out["aux_logits"].shape == (3, 6, 4)
 
 
-def save_checkpoint_without(tmp_path, field):
-    """A tiny checkpoint as saved before ModelConfig had `field` -> (its config, model_args, path)."""
-    old = model.ModelConfig(depth_size=16, context=4, **TINY)
-    args = dataclasses.asdict(old)
-    del args[field]
-    path = str(tmp_path / "old.pt")
-    train.save_atomic({"model": model.SkillTransformer(old).state_dict(), "model_args": args,
-                       "env_config": {"depth_size": 16}, "rtg_max": 1.0}, path)
-    return old, args, path
-
-
-def test_state_hidden_mlp_and_checkpoints_without_it(tmp_path):
-    """state_hidden > 0: a 3-layer state MLP of that width; a checkpoint saved before the field
-    existed (no "state_hidden" in its model_args) still loads, with the 2-layer MLP."""
-    cfg = model.ModelConfig(depth_size=16, context=4, state_hidden=24, **TINY)
-    net = model.SkillTransformer(cfg)
-    assert [m.out_features for m in net.state_mlp if isinstance(m, torch.nn.Linear)] == [24, 24, cfg.d_state]
-    assert net(random_batch(cfg, B=2))["arm"].shape == (2, 4, 7)
-    old, args, path = save_checkpoint_without(tmp_path, "state_hidden")
-    mlp = model.load_policy(path).model.state_mlp
-    assert [m.out_features for m in mlp if isinstance(m, torch.nn.Linear)] == [old.d_state, old.d_state]
-    train.check_model_args({"model_args": args}, old, path)        # --init and --resume accept it
-    with pytest.raises(ValueError, match="state_hidden"):
-        train.check_model_args({"model_args": args}, cfg, path)
-
-
-def test_near_features_feed_the_reach_targets_at_centimetre_scale(tmp_path):
-    """near_scale > 0: the state MLP reads the normalised state and tanh(v / near_scale) of the
-    cup-to-object and cup-to-goal vectors; 0 (and a checkpoint without the field) reads the state alone."""
+def test_near_features_feed_the_reach_targets_at_centimetre_scale():
+    """near_scale > 0 (the default): the state MLP reads the normalised state and tanh(v / near_scale)
+    of the cup-to-object and cup-to-goal vectors; 0 reads the state alone."""
     assert [name for name, n in env.STATE_LAYOUT for _ in range(n)][18:24] == ["obj_start"] * 3 + ["goal"] * 3
     assert model.NEAR_INDEX == list(range(18, 24))
     cfg = model.ModelConfig(depth_size=16, context=4, near_scale=0.1, **TINY)
@@ -936,38 +910,10 @@ def test_near_features_feed_the_reach_targets_at_centimetre_scale(tmp_path):
     # a 2 cm move of the object changes the near inputs by ~0.2, the normalised ones by 0.02 / std
     near = lambda v: torch.tanh(torch.tensor(v) / cfg.near_scale)
     assert float(near(0.03) - near(0.01)) > 0.15
-    _, args, path = save_checkpoint_without(tmp_path, "near_scale")
-    assert model.load_policy(path).model.state_mlp[0].in_features == env.STATE_DIM
+    off = model.SkillTransformer(model.ModelConfig(depth_size=16, context=4, near_scale=0.0, **TINY))
+    assert off.state_mlp[0].in_features == env.STATE_DIM
     with pytest.raises(ValueError, match="near_scale"):
-        train.check_model_args({"model_args": args}, cfg, path)
-
-
-def test_skill_first_reads_the_action_at_x_and_detached_skill_input(tmp_path):
-    """skill_first: z_t still steers a_t (and nothing before it); detach_skill_input: the skill and
-    receptacle losses leave the encoder's gradient at zero, the action losses do not; checkpoints
-    saved before the two fields existed load with the paper's behaviour."""
-    cfg = model.ModelConfig(depth_size=16, context=6, skill_first=True, **TINY)
-    net = model.SkillTransformer(cfg).eval()
-    batch = random_batch(cfg)
-    with torch.no_grad():
-        ref = net(batch)["arm"]
-        batch["skill"][:, 3] = (batch["skill"][:, 3] + 1) % cfg.n_skills
-        out = net(batch)["arm"]
-    torch.testing.assert_close(out[:, :3], ref[:, :3])
-    assert not torch.allclose(out[:, 3], ref[:, 3])
-    for detach in (False, True):
-        torch.manual_seed(0)
-        cfg = model.ModelConfig(depth_size=16, context=6, detach_skill_input=detach, **TINY)
-        net = model.SkillTransformer(cfg)
-        losses = net.compute_loss(net(batch), batch)
-        for terms, zero in ((("skill", "aux"), detach), (("arm", "base", "grip"), False)):
-            net.zero_grad()
-            sum(losses[k] for k in terms).backward(retain_graph=True)
-            g = sum(0.0 if p.grad is None else float(p.grad.abs().sum()) for p in net.state_mlp.parameters())
-            assert (g == 0) == zero, (detach, terms, g)
-    for field in ("skill_first", "detach_skill_input"):
-        old, args, path = save_checkpoint_without(tmp_path, field)
-        assert getattr(model.load_policy(path).model.cfg, field) is False
+        train.check_model_args({"model_args": dataclasses.asdict(off.cfg)}, cfg, "off.pt")
 
 
 @pytest.mark.parametrize("variant", model.VARIANTS)
@@ -992,10 +938,41 @@ def test_causality(variant):
             assert not torch.allclose(ref["arm"][:, k:], net(pert)["arm"][:, k:])  # the future does change
 
 
-@pytest.mark.parametrize("skill_first", (False, True))
-def test_padding_matches_rollout(skill_first):
+def test_scheduled_sampling_feeds_the_predicted_skill_and_stays_causal():
+    """In training mode a skill_sample share of the z_t are the skill module's own argmax: with 1,
+    the true skills have no effect on the actions, with 0 they do; with 0.5 (the same draw of which
+    steps sample, by the seed) a change of any input at step k leaves every output before k as it was."""
+    batch = random_batch(model.ModelConfig(depth_size=16, context=7, **TINY), B=2, seed=1)
+    other = random_batch(model.ModelConfig(depth_size=16, context=7, **TINY), B=2, seed=2)
+    flipped = {**batch, "skill": (batch["skill"] + 1) % len(env.SKILLS)}
+    for share, same in ((1.0, True), (0.0, False)):
+        net = model.SkillTransformer(model.ModelConfig(depth_size=16, context=7, skill_sample=share, **TINY)).train()
+        with torch.no_grad():
+            assert torch.allclose(net(batch)["arm"], net(flipped)["arm"], atol=1e-6) == same, share
+    net = model.SkillTransformer(model.ModelConfig(depth_size=16, context=7, skill_sample=0.5, **TINY)).train()
+
+    def forward(b):
+        torch.manual_seed(0)                     # the same steps sample the predicted skill
+        with torch.no_grad():
+            return net(b)
+    ref = forward(batch)
+    torch.manual_seed(0)
+    sampled = torch.rand(batch["skill"].shape) < 0.5
+    assert 0 < int(sampled.sum()) < sampled.numel()
+    for k in (0, 3, 6):
+        for key in ("depth", "state", "prev_action", "skill"):
+            pert = {**batch, key: batch[key].clone()}
+            pert[key][:, k:] = other[key][:, k:]
+            out = forward(pert)
+            for name in ref:
+                assert torch.allclose(ref[name][:, :k], out[name][:, :k], atol=1e-5), (key, k, name)
+    with pytest.raises(ValueError, match="skill_sample"):
+        model.SkillTransformer(model.ModelConfig(depth_size=16, skill_sample=1.5, **TINY))
+
+
+def test_padding_matches_rollout():
     """A left-padded training window gives the Policy's outputs on the same steps."""
-    cfg = model.ModelConfig(depth_size=16, context=5, skill_first=skill_first, **TINY)
+    cfg = model.ModelConfig(depth_size=16, context=5, **TINY)
     net = model.SkillTransformer(cfg).eval()
     policy = model.Policy(net, {"depth_size": 16}, rtg_max=1.0)
     rng = np.random.default_rng(0)
@@ -1020,7 +997,7 @@ def test_padding_matches_rollout(skill_first):
 
 
 def test_prev_action_off_ignores_a_t_minus_1():
-    """ModelConfig(prev_action=False), train.py's --action-dropout 1: a_{t-1} has no effect."""
+    """ModelConfig(prev_action=False), train.py's default: a_{t-1} has no effect."""
     cfg = model.ModelConfig(depth_size=16, context=6, prev_action=False, **TINY)
     net = model.SkillTransformer(cfg).eval()
     batch = random_batch(cfg)
@@ -1087,13 +1064,6 @@ def test_every_variant_trains_one_step(variant):
     opt.step()
     assert all(p.grad is not None for p in net.parameters())  # every parameter is used (DDP needs it)
     assert any(not torch.equal(a, b) for a, b in zip(before, net.parameters()))
-
-
-def test_resnet18_encoder():
-    cfg = model.ModelConfig(depth_size=32, context=2, encoder="resnet18", **TINY)
-    net = model.SkillTransformer(cfg)
-    assert 10e6 < net.num_params() < 13e6
-    assert net(random_batch(cfg, B=1))["arm"].shape == (1, 2, 7)
 
 
 # --- train.py ---
@@ -1174,10 +1144,32 @@ def test_demos_from_several_directories(tmp_path):
         train.load_demos(f"{a},{c}")
 
 
+def test_log_has_each_loss_terms_gradient_norm_on_the_encoder(trained):
+    """CKPT.csv: per log row the losses and each term's gradient norm on the shared encoder; the
+    printed line shows them too."""
+    data, out, stdout = trained
+    with open(out[:-3] + ".csv") as f:
+        rows = list(csv.DictReader(f))
+    assert rows and set(train.GRAD_COLUMNS) <= set(rows[0]) and "grad (skill" in stdout
+    for row in rows:
+        for k in ("loss",) + train.GRAD_COLUMNS:
+            assert np.isfinite(float(row[k])) and float(row[k]) >= 0, (k, row[k])
+    assert any(float(row["grad_aux"]) > 0 for row in rows)
+    net = model.SkillTransformer(model.ModelConfig(depth_size=16, context=4, **TINY))
+    batch = random_batch(net.cfg)
+    losses = net.compute_loss(net(batch), batch, skill_weight=0.5, aux_weight=2.0)
+    want = losses["arm"] + losses["base"] + losses["grip"] + 0.5 * losses["skill"] + 2.0 * losses["aux"]
+    torch.testing.assert_close(losses["loss"], want)
+
+
 def test_help_and_flags():
     assert "--warmup-epochs" in run_script([sys.executable, "train.py", "--help"])
     cfg = train.parse_args(["--warmup_epochs=3", "--resume", "--lr", "1e-3", "--variant", "dt"])
     assert (cfg.warmup_epochs, cfg.resume, cfg.lr, cfg.variant) == (3, True, 1e-3, "dt")
+    cfg = train.parse_args([])                                  # the CPU recipe is the default
+    assert (cfg.near_scale, cfg.epochs, cfg.batch_size, cfg.lr, cfg.demos_per_epoch, cfg.warmup_epochs) == \
+        (0.1, 150, 64, 5e-4, 80, 20)
+    assert (cfg.prev_action, cfg.skill_sample, cfg.skill_weight, cfg.aux_weight) == (False, 0.5, 1.0, 1.0)
 
 
 def test_train_script_then_policy(trained):
@@ -1185,8 +1177,11 @@ def test_train_script_then_policy(trained):
     assert "samples/s" in stdout and "eta" in stdout
     for path in (out, out[:-3] + ".last.pt", out[:-3] + ".csv"):
         assert os.path.exists(path), path
-    ckpt = torch.load(out, weights_only=True)
+    ckpt = torch.load(out, weights_only=True)                 # the last epoch's model, as CKPT.last.pt
     assert ckpt["epoch"] == 2 and ckpt["config"]["variant"] == "st" and ckpt["env_config"]["depth_size"] == 16
+    last = torch.load(out[:-3] + ".last.pt", weights_only=True)
+    assert all(torch.equal(v, last["model"][k]) for k, v in ckpt["model"].items())
+    assert ckpt["optimizer"] is None and last["optimizer"] is not None
     policy = model.load_policy(out)
     assert policy.variant == "st" and policy.env_config == ckpt["env_config"]
     rng = np.random.default_rng(0)
@@ -1246,9 +1241,6 @@ def test_env_config_mismatch_is_refused(trained, tmp_path):
         shutil.copy(os.path.join(os.path.dirname(out), name), tmp_path / name)
     cfg = train.TrainConfig(data=other, out=str(tmp_path / "st.pt"), resume=True, epochs=3, batch_size=4,
                             d_model=32, n_head=2, context=8, threads=1)
-    with pytest.raises(ValueError, match="env_config"):
-        train.train(cfg)
-    cfg.resume, cfg.init = False, out
     with pytest.raises(ValueError, match="max_steps"):
         train.train(cfg)
 
@@ -1271,17 +1263,3 @@ def test_torchrun_two_processes(tmp_path):
                          "--d-model", "32", "--n-head", "2", "--context", "8", "--log-interval", "1"])
     assert "world 2" in stdout and stdout.count("samples/s") == 2  # 2 epochs x 1 iteration, rank 0 only
     assert model.load_policy(out).variant == "st"
-
-
-def test_success_check_keeps_the_best(tmp_path, monkeypatch):
-    """With --eval-every, CKPT is the checkpoint of the best seen success, CKPT.last.pt the last."""
-    data = write_demos(str(tmp_path / "d"), n_episodes=2, steps=(20, 25))
-    rates = iter([0.5, 0.2, 0.4])
-    fake = type(sys)("evaluate")
-    fake.success_check = lambda path, episodes, seed=0: next(rates)
-    monkeypatch.setitem(sys.modules, "evaluate", fake)
-    out = str(tmp_path / "st.pt")
-    train.train(train.TrainConfig(data=data, out=out, epochs=3, warmup_epochs=1, batch_size=4, d_model=32,
-                                  n_head=2, context=8, eval_every=1, eval_episodes=1, threads=1))
-    best, last = (torch.load(p, weights_only=True) for p in (out, str(tmp_path / "st.last.pt")))
-    assert (best["epoch"], best["best_success"]) == (1, 0.5) and last["epoch"] == 3

@@ -1,25 +1,29 @@
 """Imitation learning of the Skill Transformer (and baselines) from expert demonstrations.
 
 Follows Sec. 4.2 and Appendix A of the paper: random windows of C = 30 steps from the demos, the
-losses computed at every step of the window (teacher forcing with the true skills), AdamW, an
-"epoch" of 80 randomly chosen demonstrations, a linear learning-rate warm-up from 1e-8 followed
-by a cosine decay to 0, and the checkpoint with the best success on `seen` episodes kept.
+losses computed at every step of the window, AdamW, an "epoch" of 80 randomly chosen
+demonstrations, a linear learning-rate warm-up from 1e-8 followed by a cosine decay to 0. Two
+departures, each a flag: part of the steps feed action inference the skill module's own
+prediction instead of the true skill (--skill-sample 0.5; 0 is the paper's teacher forcing), and
+the last checkpoint is kept, not the one of the best success on a few `seen` episodes (with the
+20 or so a CPU affords, that choice is noise).
 
     python train.py --data data/demos --out ckpt/st.pt                    # Skill Transformer
     python train.py --data data/demos --out ckpt/dt.pt --variant dt       # or no_skill, lstm, dt_skill
-    python train.py --data data/demos --out ckpt/st.pt --eval-every 10    # keep the best seen success
     python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
     python train.py --data data/demos --out ckpt/part.pt --segments nav-pick,nav-place   # Sec. 5.5
-    python train.py --data data/demos,data/dagger --out ckpt/st2.pt --init ckpt/st.pt   # DAgger
+    python train.py --data data/demos,data/dagger --out ckpt/st2.pt       # DAgger: the union of demo dirs
     python train.py --data data/heldout --validate ckpt/st.pt,ckpt/dt.pt   # fit on held-out demos
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
-    python train.py --data data/demos --out ckpt/st.pt --batch-size 256 --coverage 4 --dropout 0.1 \
-        --epochs 254 --warmup-epochs 25          # the GPU budget of README "Results" (~10k iterations)
+    python train.py --data data/demos --out ckpt/st.pt --batch-size 256 --demos-per-epoch 320 \
+        --device cuda                          # four times the windows per epoch, on a GPU
 
-For --out ckpt/st.pt it writes ckpt/st.pt (the best checkpoint, or the final one when no success
-check runs), ckpt/st.last.pt (every epoch, for --resume) and ckpt/st.csv (the log). Load one for
-rollouts with model.load_policy("ckpt/st.pt"). The defaults train in 12.6-14.8 min on 2 CPU cores
-on 1,000 demos of collect.py (~950 steps on average, 32x32 depth; 230-330 ms/iter).
+For --out ckpt/st.pt it writes ckpt/st.pt (the final model), ckpt/st.last.pt (every epoch, with
+the optimizer state, for --resume) and ckpt/st.csv (the log: losses, and each loss term's gradient
+norm on the shared encoder, to balance the terms with --skill-weight and --aux-weight). Load one
+for rollouts with model.load_policy("ckpt/st.pt"). The defaults (the CPU recipe) train a Skill
+Transformer in about 25 min on 2 CPU cores on 1,000 demos of collect.py (~950 steps on average,
+32x32 depth).
 """
 import argparse
 import contextlib
@@ -55,44 +59,42 @@ class TrainConfig:
     """context length C in steps (Sec. 4.1)"""
     d_model: int = 128
     """transformer width; the visual and state embeddings get half each (paper: 512)"""
-    state_hidden: int = 0
-    """hidden width of the 3-layer state MLP (0: the 2-layer MLP of width d_model / 2)"""
-    near_scale: float = 0.0
+    near_scale: float = 0.1
     """metres: > 0 also feeds tanh(v / near_scale) of the cup-to-object and cup-to-goal vectors
-    to the state MLP (model.NEAR_FIELDS); 0: off"""
-    skill_first: bool = False
-    """st/lstm: action tokens (z_t, a_{t-1}, x_t) per step, the action read from x_t's token
-    (model.ModelConfig.skill_first); False: the paper's (x_t, a_{t-1}, z_t)"""
-    detach_skill_input: bool = False
-    """st/lstm: the skill and receptacle losses do not train the shared encoder"""
+    to the state MLP (model.NEAR_FIELDS): the reach needs centimetres; 0: off"""
     n_layer: int = 2
     """layers per transformer (Sec. 4.1)"""
     n_head: int = 4
     """attention heads"""
     dropout: float = 0.0
-    """dropout in the transformers; off: 6 passes hardly overfit, and on a CPU it costs ~15% of a step"""
-    encoder: str = "cnn"
-    """depth encoder: cnn (fast) or resnet18 (the paper's; slow on a CPU)"""
-    epochs: int = 75
-    """epochs of demos_per_epoch demos; 75 x 80 = the paper's ~6 passes over 1,000 demos (Sec. 4.2)"""
+    """dropout in the transformers; off: on a CPU it costs ~15% of a step"""
+    epochs: int = 150
+    """epochs of demos_per_epoch demos; 150 x 80 = 12 passes over 1,000 demos (the paper's
+    schedule, Sec. 4.2: ~6)"""
     warmup_epochs: int = 20
-    """linear warm-up from lr_start to lr, the paper's fraction (Appendix A: 200 of 750 epochs)"""
+    """epochs of linear warm-up from lr_start to lr (Appendix A: 200 of 750 epochs)"""
     demos_per_epoch: int = 80
     """demonstrations drawn at random for each epoch (Appendix A: 80)"""
-    coverage: float = 1.0
-    """windows per epoch = coverage x (steps in the epoch's demos) / context: 1 = each step once"""
     batch_size: int = 64
     """windows per optimizer step (summed over DDP ranks); 64 keeps both CPU cores busy"""
     lr: float = 5e-4
-    """peak learning rate; the paper's 6e-5 (Appendix A) suits far more updates than our ~2,300"""
+    """peak learning rate; the paper's 6e-5 (Appendix A) suits far more updates than our ~6,000"""
     lr_start: float = 1e-8
     """learning rate at the start of the warm-up (Appendix A)"""
     weight_decay: float = 0.1
     """AdamW weight decay on weight matrices (not on biases, norms, embeddings of position)"""
-    action_dropout: float = 1.0
-    """fraction of previous-action tokens a_{t-1} zeroed in training (1: the model has none, in
-    training and rollouts): with them the policy learns to copy a_{t-1}, the easiest fit to smooth
-    expert actions, and then stalls or turns the wrong way in its own rollouts (copycat; README)"""
+    prev_action: bool = False
+    """the paper's a_{t-1} tokens in action inference; off by default: with them the policy learns
+    to copy a_{t-1}, the easiest fit to smooth expert actions, and then stalls or turns the wrong
+    way in its own rollouts (the copycat problem)"""
+    skill_sample: float = 0.5
+    """st/lstm: probability that a step's z_t is the skill module's own (detached) argmax instead
+    of the true skill (scheduled sampling: a rollout feeds the predicted skills); 0: the paper's
+    teacher forcing"""
+    skill_weight: float = 1.0
+    """weight of the skill loss (Eq. 1) in the sum; the paper's is 1"""
+    aux_weight: float = 1.0
+    """weight of the auxiliary receptacle loss (Eq. 3) in the sum; the paper's is 1"""
     grad_clip: float = 1.0
     """clip the gradient norm to this (0: off)"""
     seed: int = 0
@@ -103,14 +105,9 @@ class TrainConfig:
     """train on pieces of the demos only, e.g. nav-pick,nav-place (Sec. 5.5); empty: whole demos"""
     resume: bool = False
     """continue from CKPT.last.pt (same model, same data env config)"""
-    init: str = ""
-    """start from this checkpoint's weights with a fresh schedule (Appendix A: fine-tuning)"""
-    eval_every: int = 0
-    """every K epochs measure success on seen episodes with evaluate.success_check (0: off)"""
-    eval_episodes: int = 20
-    """episodes per success check"""
     log_interval: int = 10
-    """iterations between log lines and CSV rows"""
+    """iterations between log lines and CSV rows (losses averaged over them; gradient norms
+    measured on the last)"""
     device: str = "auto"
     """auto (cuda if available), cpu or cuda"""
     threads: int = 0
@@ -122,7 +119,8 @@ class TrainConfig:
 
 
 LOSS_TERMS = ("loss", "skill", "aux", "arm", "base", "grip")
-CSV_FIELDS = ("epoch", "iter", "lr") + LOSS_TERMS + ("ms_iter", "samples_s", "success")
+GRAD_COLUMNS = tuple(f"grad_{k}" for k in LOSS_TERMS[1:])   # each term's gradient norm on the encoder
+CSV_FIELDS = ("epoch", "iter", "lr") + LOSS_TERMS + GRAD_COLUMNS + ("ms_iter", "samples_s")
 
 
 # --- learning-rate schedule (Appendix A) ---
@@ -256,14 +254,14 @@ def load_demos(data, max_demos=0):
 
 def epoch_windows(lengths, cfg, epoch):
     """Appendix A: an epoch draws demos_per_epoch demos (of the given lengths); windows end at steps
-    drawn uniformly from all their steps, a whole number of batches of them. Same (seed, epoch) ->
+    drawn uniformly from all their steps, as many as cover each step once, in whole batches. Same (seed, epoch) ->
     same windows on every rank, which then takes its share of each batch. -> (n, 2) int array of
     (demo, end step)."""
     rng = np.random.default_rng([cfg.seed, epoch])
     chosen = rng.choice(len(lengths), size=min(cfg.demos_per_epoch, len(lengths)), replace=False)
     ends = every_step(lengths, chosen)
     B = cfg.batch_size
-    n = max(B, int(round(cfg.coverage * len(ends) / cfg.context)) // B * B)
+    n = max(B, int(round(len(ends) / cfg.context)) // B * B)   # each step about once per epoch
     return ends[rng.choice(len(ends), size=n, replace=n > len(ends))]
 
 
@@ -298,6 +296,12 @@ def get_batch(flat, starts, windows, C):
     batch["depth"] = batch["depth"].float().div_(255.0).view(B, C, 1, S, S)  # (B, T, 1, H, W) in [0, 1]
     batch["mask"] = mask
     return batch
+
+
+def grad_norm(loss, params):
+    """L2 norm of d loss / d params, leaving the graph for the backward pass of the total loss."""
+    grads = torch.autograd.grad(loss, params, retain_graph=True, allow_unused=True)
+    return float(sum((g.float() ** 2).sum() for g in grads if g is not None) ** 0.5)
 
 
 def data_stats(demos):
@@ -341,19 +345,6 @@ def check_env_config(ckpt, meta, ckpt_path, data_dir):
                          f"{diff}: " + ", ".join(f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in diff))
 
 
-def success_check_fn():
-    """evaluate.success_check(ckpt_path, episodes, seed) -> success rate, if evaluate.py provides it."""
-    try:
-        import evaluate
-    except ImportError as e:
-        print(f"no success check: evaluate.py does not import ({e})")
-        return None
-    fn = getattr(evaluate, "success_check", None)
-    if fn is None:
-        print("no success check: evaluate.py has no success_check()")
-    return fn
-
-
 # --- training ---
 
 def train(cfg):
@@ -374,8 +365,8 @@ def train(cfg):
         torch.backends.cudnn.benchmark = True
     local_world = int(os.environ.get("LOCAL_WORLD_SIZE", 1))
     torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // local_world))
-    if not 0 <= cfg.action_dropout <= 1:
-        raise ValueError(f"action_dropout must lie in [0, 1], got {cfg.action_dropout}")
+    if not 0 <= cfg.skill_sample <= 1:
+        raise ValueError(f"skill_sample must lie in [0, 1], got {cfg.skill_sample}")
     if cfg.batch_size % world:
         raise ValueError(f"batch_size ({cfg.batch_size}) must be a multiple of the DDP world size ({world})")
     B = cfg.batch_size // world  # windows per rank and step
@@ -400,18 +391,16 @@ def train(cfg):
     # model
     margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]), context=cfg.context,
                               d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
-                              d_model=cfg.d_model, state_hidden=cfg.state_hidden, near_scale=cfg.near_scale,
-                              skill_first=cfg.skill_first, detach_skill_input=cfg.detach_skill_input,
-                              n_layer=cfg.n_layer, n_head=cfg.n_head,
-                              dropout=cfg.dropout, encoder=cfg.encoder, variant=cfg.variant,
-                              prev_action=cfg.action_dropout < 1)
+                              d_model=cfg.d_model, near_scale=cfg.near_scale, n_layer=cfg.n_layer,
+                              n_head=cfg.n_head, dropout=cfg.dropout, variant=cfg.variant,
+                              prev_action=cfg.prev_action, skill_sample=cfg.skill_sample)
     last_path, csv_path = stem(cfg.out) + ".last.pt", stem(cfg.out) + ".csv"
-    ckpt, start_epoch, iter_num, best_success = None, 0, 0, -1.0
+    ckpt, start_epoch, iter_num = None, 0, 0
     if cfg.resume:
         ckpt = model.load_checkpoint(last_path)
         check_env_config(ckpt, meta, last_path, cfg.data)
         check_model_args(ckpt, margs, last_path)
-        start_epoch, iter_num, best_success = ckpt["epoch"], ckpt["iter_num"], ckpt["best_success"]
+        start_epoch, iter_num = ckpt["epoch"], ckpt["iter_num"]
         log(f"resuming {last_path} at epoch {start_epoch}")
     net = model.SkillTransformer(margs)
     stats = data_stats(demos)
@@ -421,12 +410,6 @@ def train(cfg):
         getattr(net, k).copy_(torch.as_tensor(stats[k]))
     if ckpt is not None:
         net.load_state_dict(ckpt["model"])
-    elif cfg.init:
-        init = model.load_checkpoint(cfg.init)
-        check_env_config(init, meta, cfg.init, cfg.data)
-        check_model_args(init, margs, cfg.init)
-        net.load_state_dict(init["model"])
-        log(f"initialised from {cfg.init}")
     net.to(device)
     log(f"{cfg.variant}: {net.num_params() / 1e6:.2f}M parameters, device {device}, world {world}, "
         f"{torch.get_num_threads()} threads")
@@ -449,10 +432,10 @@ def train(cfg):
                 "optimizer": opt.state_dict() if resumable else None,
                 "model_args": asdict(margs),
                 "config": asdict(cfg), "epoch": epoch, "iter_num": iter_num, "env_config": meta["env_config"],
-                "best_success": best_success, "rtg_max": stats["rtg_max"], "n_demos": n_demos,
+                "rtg_max": stats["rtg_max"], "n_demos": n_demos,
                 "skills": list(env.SKILLS)}
 
-    check = success_check_fn() if cfg.eval_every > 0 and master else None
+    encoder = raw.encoder_parameters()
     if master:
         new_csv = not (cfg.resume and os.path.exists(csv_path))
         os.makedirs(os.path.dirname(os.path.abspath(csv_path)), exist_ok=True)
@@ -476,12 +459,12 @@ def train(cfg):
                 g["lr"] = lr
             mine = windows[it * cfg.batch_size + rank * B:it * cfg.batch_size + (rank + 1) * B]
             batch = get_batch(flat, starts, mine, cfg.context)
-            if 0 < cfg.action_dropout < 1:
-                keep = torch.rand(batch["mask"].shape, device=device) >= cfg.action_dropout
-                batch["prev_action"] = batch["prev_action"] * keep[..., None]
             with autocast:
                 out = net(batch)
-            losses = raw.compute_loss(out, batch)
+            losses = raw.compute_loss(out, batch, cfg.skill_weight, cfg.aux_weight)
+            logging = master and ((iter_num + 1) % cfg.log_interval == 0 or it == iters - 1)
+            if logging:  # each term's (unweighted) gradient on the encoder that all terms train
+                grads = {f"grad_{k}": grad_norm(losses[k], encoder) for k in LOSS_TERMS[1:] if k in losses}
             opt.zero_grad(set_to_none=True)
             losses["loss"].backward()
             if cfg.grad_clip > 0:
@@ -492,45 +475,33 @@ def train(cfg):
             for k, v in losses.items():
                 sums[k] = sums.get(k, 0.0) + v.item()
             n_sum += 1
-            if master and (iter_num % cfg.log_interval == 0 or it == iters - 1):
+            if logging:
                 dt = (time.time() - t_int) / n_sum
                 rate = (time.time() - t_start) / it_done
                 eta = rate * ((cfg.epochs - epoch - 1) * iters + iters - it - 1)
                 row = {"epoch": epoch + 1, "iter": iter_num, "lr": lr, "ms_iter": round(dt * 1e3, 1),
-                       "samples_s": round(cfg.batch_size / dt, 1), **{k: v / n_sum for k, v in sums.items()}}
+                       "samples_s": round(cfg.batch_size / dt, 1), **{k: v / n_sum for k, v in sums.items()},
+                       **grads}
                 writer.writerow(row)
                 csv_file.flush()
                 terms = " ".join(f"{k} {sums[k] / n_sum:.4f}" for k in LOSS_TERMS[1:] if k in sums)
+                gnorms = " ".join(f"{k[5:]} {v:.3f}" for k, v in grads.items())
                 log(f"[{epoch + 1:3d}/{cfg.epochs} {it + 1:4d}/{iters}] loss {row['loss']:.4f} ({terms}) "
-                    f"lr {lr:.2e} | {dt * 1e3:.0f} ms/iter, {row['samples_s']:.1f} samples/s, "
+                    f"grad ({gnorms}) lr {lr:.2e} | {dt * 1e3:.0f} ms/iter, {row['samples_s']:.1f} samples/s, "
                     f"eta {eta / 60:.1f} min")
                 sums, n_sum, t_int = {}, 0, time.time()
 
-        # end of epoch: rank 0 saves CKPT.last.pt, maybe checks success and keeps the best
+        # end of epoch: rank 0 saves CKPT.last.pt, which --resume reads
         if master:
             save_atomic(checkpoint(epoch + 1), last_path)
-            done = epoch + 1
-            if check is not None and (done % cfg.eval_every == 0 or done == cfg.epochs):
-                t_eval = time.time()
-                success = float(check(last_path, cfg.eval_episodes, cfg.seed))
-                log(f"epoch {done}: seen success {success:.3f} ({cfg.eval_episodes} episodes, "
-                    f"{time.time() - t_eval:.0f} s), best so far {max(success, best_success):.3f}")
-                writer.writerow({"epoch": done, "iter": iter_num, "success": success})
-                csv_file.flush()
-                if success >= best_success:  # Sec. 4.2: keep the best seen success (ties: the later)
-                    best_success = success
-                    save_atomic(checkpoint(done, resumable=False), cfg.out)
-                    save_atomic(checkpoint(done), last_path)
         if ddp:
             dist.barrier()
-        t_int = time.time()  # saving and success checks do not count as iteration time
+        t_int = time.time()  # saving does not count as iteration time
 
     if master:
-        if check is None:
-            save_atomic(checkpoint(cfg.epochs, resumable=False), cfg.out)
+        save_atomic(checkpoint(cfg.epochs, resumable=False), cfg.out)   # the last model, not a "best"
         csv_file.close()
-        log(f"done in {(time.time() - t_start) / 60:.1f} min: {cfg.out}"
-            + (f" (best seen success {best_success:.3f})" if best_success >= 0 else ""))
+        log(f"done in {(time.time() - t_start) / 60:.1f} min: {cfg.out}")
     if ddp:
         dist.destroy_process_group()
     return cfg.out
