@@ -190,9 +190,13 @@ def applicable_events(e, x):
     p = e.privileged()
     over = x._support(p["ee"])
     cabinet = over.startswith("drawer")                  # the drawers are stacked: over one is near both
+    # not the goal's receptacle while the target is carried: it cannot be opened with the object in
+    # the cup, and the expert would have to put it down wherever it stands
+    carried = p["held"] == p["target"]
     shut = [k for k, r in enumerate(env.RECEPTACLES)
             if p["open_fraction"][k] > SHUT_OPEN and np.linalg.norm(p["ee"] - p["handles"][k]) > SHUT_CLEAR
-            and over != r and not (cabinet and r.startswith("drawer"))]
+            and over != r and not (cabinet and r.startswith("drawer"))
+            and not (carried and k == p["goal_receptacle"] - 1)]
     push = p["handle"] < 0    # a base pushed while the cup holds a handle tears at the weld: a collision
     obj = p["objects"][p["target"]]
     under = x._support(obj)   # a drawer's region reaches out over its travel: it must stand open

@@ -67,6 +67,8 @@ class Config:
     the same for 8 as for 1 on a CPU); fixes which episodes share a batch, so keep it to compare runs"""
     perturb: bool = False
     """run the perturbation test (Table 2) instead of Table 1"""
+    perturb_after: int = 0
+    """with --perturb: steps the receptacle stays open before it snaps shut; 0 keeps the env's 50"""
     difficulty: str = ""
     """only episodes of this difficulty (easy, hard, very_hard): the first N of the split that have it"""
     max_steps: int = 0
@@ -477,7 +479,7 @@ def evaluate(cfg):
     # batches (and so the same numbers) whatever the number of workers.
     chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
     jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
-             ref, dict(env_config, perturb=c == "perturb"), chunk, [reset_seed(s, ep.index, seed) for ep in chunk])
+             ref, dict(env_config, perturb=c == "perturb", **({"perturb_after": cfg.perturb_after} if cfg.perturb_after else {})), chunk, [reset_seed(s, ep.index, seed) for ep in chunk])
             for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
             for s in splits for c in conditions for chunk in chunks[s]]
     n_total = sum(len(job[3]) for job in jobs)

@@ -52,7 +52,7 @@ CARRY_OPEN = 0.4            # ... but with the target in the cup only below this
 DRAWER_DONE = 0.97          # fraction at which the drawer pull lets go
 DOOR_DONE = 1.5             # rad at which the door swing lets go (range 1.75; the arm's reach ends ~1.58)
 DOOR_TARGET = 1.6           # rad the swing's aim never passes
-DOOR_STEP = 0.15            # rad: each step the swing aims this far ahead of the door's angle
+DOOR_STEP = 0.3             # rad: each step the swing aims this far ahead of the door's angle
 ARM_EASE = 3                # steps: the arm closes 1/ARM_EASE of its error per step near its target
 REST_TOL = 0.2              # rad: the arm counts as folded this near ARM_REST (a held object stops
                             # the fold 0.12-0.14 rad short)
@@ -255,9 +255,11 @@ class Expert:
         """Facing the point at arm's reach: where a pick or place acts (its base label keeps it there)."""
         x, y, yaw = self.p["base"]
         to = np.asarray(point[:2]) - [x, y]
-        return abs(_wrap(np.arctan2(to[1], to[0]) - yaw)) < WORK_YAW and abs(np.linalg.norm(to) - self._reach(place)) < WORK_DIST
+        return (abs(_wrap(np.arctan2(to[1], to[0]) - yaw)) < WORK_YAW
+                and abs(np.linalg.norm(to) - self._reach(place)) < WORK_DIST)
 
     def _at_pose(self, pose):
+        """Near an opening pose."""
         x, y, yaw = self.p["base"]
         return np.hypot(pose[0] - x, pose[1] - y) < OPEN_XY and abs(_wrap(pose[2] - yaw)) < OPEN_YAW
 
@@ -307,11 +309,12 @@ class Expert:
             q = np.minimum(np.maximum(q + np.minimum(np.maximum(dq, -0.3), 0.3), lo), hi)
         return q
 
-    def _clearance(self, body):
-        """Air under a body (m): a ray straight down from its bottom, missing the robot and the body."""
+    def _clearance(self, body, half=env.OBJ_HALF):
+        """Air under a body (m): a ray straight down from `half` below its centre, missing the robot
+        and the body itself."""
         g = np.ones(6, np.uint8)
         g[env.ROBOT_GROUP] = 0
-        start = self.env.data.xpos[body] - [0, 0, env.OBJ_HALF + 0.002]
+        start = self.env.data.xpos[body] - [0, 0, half + 0.002]
         gid = np.zeros(1, np.int32)
         dist = mujoco.mj_ray(self.m, self.env.data, start, DOWN, g, 1, int(body), gid)
         return np.inf if dist < 0 else dist
@@ -336,8 +339,9 @@ class Expert:
             obj = p["objects"][k]
             n = self._frame(self.fur["cabinet"])[0]
             near = [r for r in range(2) if np.linalg.norm(ee - p["handles"][r]) < 0.08]
-            if np.linalg.norm(ee[:2] - obj[:2]) < 0.05 and 0 < ee[2] - obj[2] < env.OBJ_HALF + 0.08:
-                aim = ee + [0, 0, 0.12]                          # up off a released object
+            below = self._clearance(self.ids["ee_body"], 0.0)
+            if below < 0.1 and below < ee[2] - 0.05:             # low over a surface or an object:
+                aim = ee + [0, 0, 0.12]                          # up first, the fold would sweep it
             elif near:                                           # off a drawer handle, straight back
                 aim = p["handles"][near[0]] + [*n * 0.14, 0.0]
             else:
