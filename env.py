@@ -635,6 +635,9 @@ class RearrangeEnv:
         t1 = time.perf_counter()
         mujoco.mj_step(m, d, nstep=FRAME_SKIP)
         force = self._contact_force()           # sampled at 30 Hz: sustained pushes, not impulses
+        # positions, contacts and forces of the new state (mj_step leaves those of the last substep's
+        # start): the observation, the expert and a state restored into another env then agree
+        mujoco.mj_forward(m, d)
         t2 = time.perf_counter()
         self.timing["physics"] += t2 - t1
         self._steps += 1

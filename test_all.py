@@ -204,12 +204,11 @@ def test_gym_wrapper_passes_env_checker():
     check_env(env.gym_env(depth_size=8), skip_render_check=True)
 
 
-def test_fixed_plan_fails_closed_receptacle_and_labels_follow_plan():
+def test_fixed_plan_never_opens_and_fails_a_closed_receptacle():
     ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
     info, _, skills = _run_expert(ep, plan="fixed")
     assert not info["success"]
-    order = [s for i, s in enumerate(skills) if i == 0 or s != skills[i - 1]]
-    assert order == [env.SKILL_IDS[s] for s in ("navigate", "pick", "navigate", "place")]
+    assert set(skills) <= {env.SKILL_IDS[s] for s in ("navigate", "pick", "place")}
 
 
 def _oracle_on_first_easy():
@@ -221,24 +220,73 @@ def _oracle_on_first_easy():
     return e, obs, x
 
 
-def test_navigation_to_a_pick_ends_facing_the_object_at_reach():
-    e, obs, x = _oracle_on_first_easy()
-    pose, face = x.steps[0][1]
-    n = np.array([np.cos(pose[2]), np.sin(pose[2])])
-    aside = np.array(pose[:2]) + 0.25 * np.array([-n[1], n[0]])      # a learned nav's typical error
-    e.data.qpos[e.ids["base_q"]] = [*aside, pose[2] + 0.5]
+def _restore(src, ep):
+    """A fresh env holding src's simulator state: the MuJoCo state, the suction anchors, and the
+    env's record of what the cup holds and of the arm's set-point."""
+    e = env.RearrangeEnv(depth_size=8)
+    e.reset(seed=0, options={"episode": ep})
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    state = np.zeros(mujoco.mj_stateSize(src.model, spec))
+    mujoco.mj_getState(src.model, src.data, state, spec)
+    mujoco.mj_setState(e.model, e.data, state, spec)
+    e.model.eq_data[:] = src.model.eq_data
+    for name in ("_arm_target", "_held", "_handle", "_picked", "_in_receptacle", "_steps"):
+        setattr(e, name, np.copy(getattr(src, name)) if name == "_arm_target" else getattr(src, name))
     mujoco.mj_forward(e.model, e.data)
-    x.steps = [("navigate", (pose, face)), ("pick", None)]
-    skills = []
+    return e, e._observe()
+
+
+def test_labels_are_a_function_of_the_state():
+    """Issue: the expert's action depends only on the current state, so a learner can imitate it and
+    the expert can label any state a learner reaches. Restoring a few hundred states from varied
+    episodes and skills into a fresh env and a fresh expert gives the same action and skill, under
+    DART noise and perturbation events, which put the states off the expert's own path."""
+    eps = [_first("easy", lambda ep: True), _first("very_hard", lambda ep: True),
+           _first("object_closed", lambda ep: ep.object_places[ep.target] == "fridge")]
+    checked, skills = 0, set()
+    for i, ep in enumerate(eps):
+        e = env.RearrangeEnv(depth_size=8)
+        x = expert.Expert(e, plan="oracle", seed=i, noise=0.1, nav_noise=0.2)
+        obs, info = e.reset(seed=i, options={"episode": ep})
+        x.reset()
+        rng = np.random.default_rng(i)
+        done = False
+        while not done:
+            action, skill = x.act(obs)
+            if info["steps"] % 7 == 0:
+                e2, obs2 = _restore(e, ep)
+                a2, s2 = expert.Expert(e2, plan="oracle").act(obs2)
+                assert s2 == skill and np.allclose(a2, action, atol=1e-5), (ep.kind, info["steps"], action, a2)
+                checked += 1
+                skills.add(skill)
+            if rng.random() < 0.003:
+                collect.perturb(e, x, rng)
+            obs, _, term, trunc, info = e.step(x.noisy(action))
+            done = term or trunc
+    assert checked > 200 and skills == set(range(len(env.SKILLS))), (checked, skills)
+
+
+def test_navigation_ends_facing_the_object_at_reach_from_off_its_path():
+    """A learned navigation stops near, not at, its mark: from a base put 25 cm aside and turned
+    0.5 rad, the expert's navigation still hands over to the pick facing the object at reach."""
+    e, obs, x = _oracle_on_first_easy()
+    p = e.privileged()
+    place = p["episode"].object_places[p["target"]]
+    x.act(obs)
+    pose = x._work_pose(place, p["objects"][p["target"]])
+    n = np.array([np.cos(pose[2]), np.sin(pose[2])])
+    e.data.qpos[e.ids["base_q"]] = [*(np.array(pose[:2]) + 0.25 * np.array([-n[1], n[0]])), pose[2] + 0.5]
+    mujoco.mj_forward(e.model, e.data)
+    steps = 0
     while True:
         action, skill = x.act(obs)
         if skill != env.SKILL_IDS["navigate"]:
             break
-        skills.append(skill)
+        steps += 1
         obs, *_ = e.step(action)
-    dist, angle = obs["obj_start_polar"]
-    assert len(skills) < 200 and abs(angle) < 0.05 and abs(dist - face[1]) < 0.03
-    assert not action[7:9].any()                                     # the pick starts standing still
+    dist, sin, cos = obs["obj_start_polar"]
+    assert skill == env.SKILL_IDS["pick"] and steps < 200
+    assert abs(np.arctan2(sin, cos)) < expert.WORK_YAW and abs(dist - x._reach(place)) < expert.WORK_DIST
 
 
 def test_expert_arm_eases_into_its_target():
@@ -259,51 +307,18 @@ def test_expert_arm_eases_into_its_target():
     assert all(-1e-9 < later <= earlier for earlier, later in zip(errors, errors[1:])) and errors[-1] < 0.003
 
 
-def test_manipulation_ends_as_the_arm_nears_its_fold_not_on_a_timer():
-    """A held object keeps the folded arm ~0.13 rad off ARM_REST: a skill that waited for a finer
-    fold ended on its timeout, a moment the policy cannot observe, and learned picks often never ended."""
-    ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
-    e = env.RearrangeEnv(depth_size=8)
-    obs, _ = e.reset(seed=0, options={"episode": ep})
-    x = expert.Expert(e, plan="oracle")
-    x.reset()
-    ends, prev, done = [], None, False
-    while not done:
-        action, skill = x.act(obs)
-        if prev in (env.SKILL_IDS["open_drawer"], env.SKILL_IDS["pick"]) and skill != prev:
-            p = e.privileged()
-            ends.append((env.SKILLS[prev], np.abs(p["arm"] - env.ARM_REST).max(), np.abs(p["arm_target"] - env.ARM_REST).max()))
-        prev = skill
-        obs, _, term, trunc, _ = e.step(action)
-        done = term or trunc
-    assert [name for name, *_ in ends] == ["open_drawer", "pick"]
-    for name, err, target_err in ends:      # ended within the tolerance, the set-point still on its way
-        assert err < expert.REST_TOL and target_err > 0.01, (name, err, target_err)
-
-
-def test_pick_label_is_a_function_of_the_state_not_of_the_steps_so_far():
-    """A learned pick sees the state, not the expert's progress: an expert that takes over midway
-    through the reach gives the label the running one gives. (With fixed waypoints the labels of
-    the two differed by 1-2 in some joint: the newcomer restarted at the first waypoint.)"""
-    e, obs, x = _oracle_on_first_easy()
-    n, gaps = 0, []
-    while e.privileged()["held"] < 0 and n < 100:
-        action, skill = x.act(obs)
-        if skill == env.SKILL_IDS["pick"]:
-            n += 1
-            if n % 10 == 0:
-                y = expert.Expert(e, plan="oracle")
-                y.reset()
-                y.steps = [("pick", None)]
-                gaps.append(np.abs(y.act(obs)[0] - action).max())
-                gaps.append(np.abs(y.reach_action("pick") - action).max())   # evaluate.py --assist reach
-        obs, *_ = e.step(action)
-    assert len(gaps) >= 3 and max(gaps) < 1e-6, gaps
+def test_every_step_makes_progress():
+    """No label waits (for servos, on a timer): outside the last steps of an episode almost no label
+    is still (collect.still_steps)."""
+    for ep in (_first("easy", lambda ep: True), _first("very_hard", lambda ep: True)):
+        info, actions, _ = _run_expert(ep)
+        assert info["success"]
+        assert collect.still_steps(actions[:-30]).mean() < 0.02
 
 
 def test_pick_grasps_over_the_last_cm_of_its_reach():
     """The grasp label is the suction on within GRASP_ZONE of the object, over several steps, not
-    one step at the end of the reach (which learned picks never fired: README)."""
+    one step at the end of the reach (which learned picks never fired: EXPERIMENTS.md)."""
     e, obs, x = _oracle_on_first_easy()
     grasps = []
     while e.privileged()["held"] < 0 and len(grasps) < 50:
@@ -318,21 +333,39 @@ def test_pick_grasps_over_the_last_cm_of_its_reach():
     assert max(d for _, d in grasps) < expert.GRASP_ZONE + 0.01, grasps
 
 
-def test_place_releases_within_its_zone_and_the_object_rests_on_the_goal():
-    """The release label is the suction off once the cup is within RELEASE_ZONE of the drop point
-    (at 4 cm learned places hovered 10-27 cm from the goal and never released: README, "The
-    release round"), and the object dropped from there still comes to rest on the goal."""
+def test_place_releases_over_the_goal_and_the_object_rests_on_it():
+    """The release label comes with the held object over the goal (within RELEASE_ZONE of the drop
+    point and over it, or hanging low within DROP_XY of the goal), and the object comes to rest there."""
     e, obs, x = _oracle_on_first_easy()
-    releases, terminated, truncated = [], False, False
-    while not (terminated or truncated) and len(releases) < 50:
+    releases, done = [], False
+    while not done:
         p = e.privileged()
         action, skill = x.act(obs)
         if action[9] < 0 and p["held"] == p["target"]:
-            releases.append((skill, np.linalg.norm(p["ee"] - x._drop_point())))
+            releases.append((skill, np.linalg.norm(p["objects"][p["target"]][:2] - p["goal"][:2])))
         obs, _, terminated, truncated, info = e.step(action)
+        done = terminated or truncated
     assert len(releases) >= 1 and all(s == env.SKILL_IDS["place"] for s, _ in releases), releases
-    assert max(d for _, d in releases) < expert.RELEASE_ZONE + 0.01, releases
+    assert max(d for _, d in releases) < expert.DROP_XY, releases
     assert info["success"], info
+
+
+def test_oracle_recovers_from_the_perturbation():
+    """Sec. 5.4: the drawer snaps shut 15 steps after it opened; the oracle re-opens it and solves the
+    episode (the fixed-at-reset expert before it picked in 0 % of these)."""
+    ep = _first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer"))
+    e = env.RearrangeEnv(depth_size=8, perturb=True, perturb_after=15)
+    x = expert.Expert(e)
+    obs, info = e.reset(seed=0, options={"episode": ep})
+    skills, done = [], False
+    while not done:
+        action, skill = x.act(obs)
+        skills.append(skill)
+        obs, _, term, trunc, info = e.step(action)
+        done = term or trunc
+    opens = [s for i, s in enumerate(skills) if s == env.SKILL_IDS["open_drawer"] and (i == 0 or skills[i - 1] != s)]
+    assert info["perturbed"] and info["success"] and len(opens) >= 2
+
 
 class _StillPolicy:
     """Stands in for a trained policy in DAgger collection: it never moves."""
