@@ -4,37 +4,27 @@ Runs the privileged oracle expert of `expert.py` (our stand-in for the paper's M
 data-generating policy, Appendix C.1) on `train` episodes in parallel worker processes and records,
 per step, what the paper records: observations, actions, rewards and the executing skill. The
 stored action is always the expert's clean label for the state the step shows. Three ways to show
-a learner states off the expert's own path, and the way back from them:
+a learner states off the expert's path (EXPERIMENTS.md records what each did):
 
-- DART (Laskey et al. 2017): the env executes the expert's action plus noise, `--noise` per step
-  on the arm (and the base while navigating) and `--nav-noise` a drifting turn rate.
-- Perturbation events (`--events R`, R per 1,000 steps): a receptacle that stands open is shut, the
-  base is pushed aside, or the held target is dropped onto the surface under it; the expert is a
-  function of the state, so it opens, drives or picks again, and the demo shows it.
+- DART (Laskey et al. 2017): the env executes the expert's action plus noise (`--noise`, and
+  `--nav-noise` a drifting turn rate).
+- Perturbation events (`--events R` per 1,000 steps): an open receptacle is shut, the base pushed,
+  or the held target dropped; the expert, a function of the state, recovers in the demo.
 - DAgger (Ross et al. 2011, `--policy CKPT`): a trained policy drives, the expert labels every
-  state it leads to. Episodes are cut into segments of `--segment` steps; each segment is driven
-  by the expert (its noised action) with probability `--beta`, else by the policy (beta 0, the
-  default: the policy drives every step). The policy sees every step, whoever drives: its context
-  is the whole episode. Every episode is kept, solved or not: its labels are valid either way.
-  Train on the union with the expert's demos (train.py --data DIR,DIR).
+  state. Each segment of `--segment` steps is driven by the expert with probability `--beta`
+  (0: the policy drives all). Every episode is kept, solved or not; train on the union with the
+  expert's demos (train.py --data DIR,DIR).
 
     python collect.py --episodes 1000 --out data/demos --workers 2 --seed 0
     python collect.py --episodes 1000 --out data/dart --noise 0.1 --nav-noise 0.2 --events 2
-    python collect.py --episodes 1000 --out data/demos --shard 0/2      # machine A
-    python collect.py --episodes 1000 --out data/demos --shard 1/2      # machine B: same DIR layout
-    python collect.py --episodes 300 --out data/dagger --seed 1 --policy ckpt/st.pt       # DAgger
-    python collect.py --episodes 300 --out data/dagger_mix --seed 1 --policy ckpt/st.pt --beta 0.5
+    python collect.py --episodes 300 --out data/dagger --seed 1 --policy ckpt/st.pt --beta 0.5
     python collect.py --stats data/demos
 
-(EXPERIMENTS.md records the earlier DART and DAgger rounds and what they did to the learned policies.)
-
-Determinism: episode index k always runs `env.make_episodes("train", ..., seed=S)[k]` with a reset
-seed derived from (S, k), and the noise, the events and the DAgger segments draw from generators
-seeded by that reset seed, so a file's bytes never depend on the worker count. Without
-`--keep-failed` (or `--policy`) only successful demonstrations are written: indices are judged in
-order and the first N successes are kept (a shard i/n takes the indices k = i (mod n) and its share
-of N). Files are written to a temporary name and renamed, so rerunning the same command after a
-kill resumes where it stopped.
+Determinism: episode index k runs `env.make_episodes("train", ..., seed=S)[k]` with a reset seed
+derived from (S, k), which also seeds the noise, the events and the DAgger segments, so a file's
+bytes never depend on the worker count. Without `--keep-failed` (or `--policy`) indices are judged
+in order and the first N successes are kept. Files are written to a temporary name and renamed,
+so rerunning the same command after a kill resumes where it stopped.
 
 File format 2 (readable with `numpy.load(path, allow_pickle=False)`), T steps:
     depth uint8 (T, H, W), state float32 (T, 30), action float32 (T, 10) clean expert action,
@@ -89,14 +79,10 @@ class Config:
     """DAgger: steps per segment; who drives is drawn at the start of each"""
     keep_failed: bool = False
     """also keep demonstrations in which the expert failed"""
-    shard: str = "0/1"
-    """i/n: write only episode indices k with k % n == i (split one dataset over n machines)"""
     depth_size: int = 0
     """head camera resolution in pixels; 0 keeps the env.EnvConfig default"""
     max_steps: int = 0
     """episode step limit; 0 keeps the env.EnvConfig default"""
-    max_draws: int = 0
-    """give up after drawing this many episode indices (0: 10 x episodes + 20)"""
     log_every: float = 10.0
     """seconds between progress lines"""
     stats: str = ""
@@ -348,11 +334,10 @@ def check_or_write_meta(out, meta):
         print(f"note: {path} was written with {old.get('versions')}, now {meta['versions']}")
 
 
-def remove_temps(out, shard_i, shard_n):
-    """Remove this shard's temporary files: partial results of a killed run or of unfinished jobs."""
+def remove_temps(out):
+    """Remove temporary files: partial results of a killed run or of unfinished jobs."""
     for name in os.listdir(out):
-        m = TEMP_FILE.match(name)
-        if m and int(m.group(1)) % shard_n == shard_i:
+        if TEMP_FILE.match(name):
             os.remove(os.path.join(out, name))
 
 
@@ -407,21 +392,10 @@ def check_policy(path, env_kwargs):
                          f"this dataset records {', '.join(f'{k}={want[k]!r}' for k in diff)}")
 
 
-def parse_shard(shard):
-    try:
-        i, n = (int(v) for v in shard.split("/"))
-    except ValueError:
-        raise ValueError(f"--shard expects i/n such as 0/2, got {shard!r}") from None
-    if not 0 <= i < n:
-        raise ValueError(f"--shard {shard}: need 0 <= i < n")
-    return i, n
-
-
 def collect(cfg):
-    """Write cfg.episodes demonstrations (this shard's share of them) to cfg.out; returns a summary."""
-    shard_i, shard_n = parse_shard(cfg.shard)
-    need = cfg.episodes // shard_n + (shard_i < cfg.episodes % shard_n)
-    max_draws = cfg.max_draws or 10 * need + 20
+    """Write cfg.episodes demonstrations to cfg.out; returns a summary."""
+    need = cfg.episodes
+    max_draws = 10 * need + 20   # more failures than this: give up with a clear error
     env_kwargs = env_kwargs_of(cfg)
     keep_all = cfg.keep_failed or bool(cfg.policy)   # DAgger: the labels are valid, solved or not
     if not 0 <= cfg.events <= 1000:
@@ -435,10 +409,10 @@ def collect(cfg):
         check_policy(cfg.policy, env_kwargs)
     os.makedirs(cfg.out, exist_ok=True)
     check_or_write_meta(cfg.out, make_meta(cfg, env_kwargs))
-    remove_temps(cfg.out, shard_i, shard_n)
+    remove_temps(cfg.out)
     have = scan_dir(cfg.out)
     episode_of = episode_source("train", cfg.seed)
-    indices = itertools.count(shard_i, shard_n)
+    indices = itertools.count()
     pool = mp.get_context("spawn").Pool(cfg.workers) if cfg.workers > 1 else None
     # (k, None for a file already there | AsyncResult | job to run here), in index order; judged in
     # that order, with enough in flight that a long episode at the head does not idle the workers
@@ -450,7 +424,7 @@ def collect(cfg):
             while not pending or (len(pending) < 8 * cfg.workers and kept + len(pending) < need):
                 if drawn >= max_draws:
                     raise RuntimeError(f"only {kept}/{need} demonstrations after {drawn} episode indices: "
-                                       f"the expert rarely succeeds with these settings (see --max-draws)")
+                                       "the expert rarely succeeds with these settings")
                 k = next(indices)
                 drawn += 1
                 episode, seed = episode_of(k), reset_seed(cfg.seed, k)
@@ -482,31 +456,18 @@ def collect(cfg):
         if pool:   # pending is empty once the last needed episode is in; else stop the workers now
             pool.terminate() if pending else pool.close()
             pool.join()
-        remove_temps(cfg.out, shard_i, shard_n)
+        remove_temps(cfg.out)
     return {"kept": kept, "drawn": drawn, "ran": ran, "ran_success": ran_success,
             "seconds": time.time() - t0}
 
 
 # --- statistics ---
 
-STILL = 0.02     # an action label is "still" when every arm and base command is below this, grip keep
-STILL_END = 30   # ... counted outside an episode's last 30 steps (after the place the expert rests)
-
-
-def still_steps(action):
-    """(T,) bool: labels that move nothing, the arm and base commands under STILL and the grip at keep.
-    A learner copies them as stalls; outside the episode's end they should be rare."""
-    return ((np.abs(action[:, env.ARM]).max(1) < STILL) & (np.abs(action[:, env.BASE]).max(1) < STILL)
-            & (action[:, env.GRIP] == 0))
-
-
 def dataset_stats(out):
-    """Summary of a dataset directory (every file validated) -> dict. still_share: the share of the
-    steps before each episode's last STILL_END whose label is still (still_steps)."""
+    """Summary of a dataset directory (every file validated) -> dict."""
     names = sorted(n for n in os.listdir(out) if n.endswith(".npz"))
     skills = np.zeros(len(env.SKILLS), np.int64)
     events = np.zeros(len(EVENTS), np.int64)
-    still = early = 0
     by_diff = {d: [0, 0] for d in env.DIFFICULTIES}
     lengths, size = [], sum(os.path.getsize(os.path.join(out, n)) for n in os.listdir(out))
     for name in names:
@@ -519,8 +480,6 @@ def dataset_stats(out):
         by_diff[str(data["difficulty"])][1] += bool(data["success"])
         lengths.append(len(data["action"]))
         events += data["events"]
-        head = data["action"][:-STILL_END]
-        still, early = still + int(still_steps(head).sum()), early + len(head)
     n = len(names)
     return {"episodes": n, "steps": int(sum(lengths)),
             "steps_min_mean_max": [min(lengths, default=0), float(np.mean(lengths)) if n else 0.0,
@@ -528,7 +487,6 @@ def dataset_stats(out):
             "skill_steps": {s: int(c) for s, c in zip(env.SKILLS, skills)},
             "success": sum(v[1] for v in by_diff.values()) / max(n, 1),
             "by_difficulty": {d: {"episodes": v[0], "success": v[1] / max(v[0], 1)} for d, v in by_diff.items()},
-            "still_share": still / max(early, 1),
             "events_per_episode": {k: float(v) / max(n, 1) for k, v in zip(EVENTS, events)},
             "bytes": size}
 
@@ -542,8 +500,6 @@ def print_stats(out):
     print("skill steps: " + ", ".join(f"{k} {v} ({100 * v / total:.1f}%)" for k, v in s["skill_steps"].items()))
     for d, v in s["by_difficulty"].items():
         print(f"  {d:9s} {v['episodes']:6d} episodes, success {100 * v['success']:.1f}%")
-    print(f"still labels (|arm|, |base| < {STILL}, grip keep) outside the last {STILL_END} steps: "
-          f"{100 * s['still_share']:.1f}% of those steps")
     print("events per episode: " + ", ".join(f"{k} {v:.2f}" for k, v in s["events_per_episode"].items()))
     print(f"size on disk {s['bytes'] / 2**20:.1f} MiB ({s['bytes'] / 2**10 / max(s['episodes'], 1):.0f} KiB/episode)")
     return s
@@ -569,9 +525,7 @@ if __name__ == "__main__":
         if cfg.stats:
             print_stats(cfg.stats)
         else:
-            print(f"collecting {cfg.episodes} demonstrations into {cfg.out} "
-                  f"(shard {cfg.shard}, {cfg.workers} workers, seed {cfg.seed}, noise {cfg.noise}, nav noise {cfg.nav_noise}, events {cfg.events}"
-                  + (f", policy {cfg.policy}, beta {cfg.beta}, segment {cfg.segment})" if cfg.policy else ")"), flush=True)
+            print(f"collecting {cfg.episodes} demonstrations into {cfg.out}: {cfg}", flush=True)
             r = collect(cfg)
             print(f"done: {r['kept']} demonstrations in {cfg.out}; ran {r['ran']} episodes "
                   f"({r['ran_success']} successful) in {r['seconds'] / 60:.1f} min", flush=True)

@@ -11,7 +11,7 @@ in code with `mujoco.MjSpec` from an integer layout id; depth comes from ray cas
     python env.py --xml scene.xml         # write a layout's MJCF for inspection
 
 Public names used by the other stages: SKILLS, RECEPTACLES, STATE_LAYOUT, state_vector,
-depth_to_uint8, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout, gym_env.
+depth_to_uint8, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout.
 """
 import argparse
 import ast
@@ -32,9 +32,8 @@ KINDS = ("easy", "object_closed", "goal_closed", "very_hard")   # hard = object_
 STATE_LAYOUT = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3),
                 ("goal", 3), ("obj_start_polar", 3), ("goal_polar", 3))
 STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 30
-# joint_target is not in the paper's observation: the arm action moves the servo set-point, which
-# leads the measured joints by ~0.1 rad while the arm moves: the expert's arm label depends on it.
-# (Adding it did not lower the learned arm's loss: README, "Results".)
+# joint_target is not in the paper's observation: the expert's arm label depends on the servo
+# set-point, which leads the joints by ~0.1 rad (EXPERIMENTS.md, M4)
 ACTION_DIM = 10                                      # 7 arm deltas, 2 base velocities, 1 grip
 ARM, BASE, GRIP = slice(0, 7), slice(7, 9), 9        # action layout
 GRIP_VALUES = (-1.0, 0.0, 1.0)                       # release, keep, grasp = grip classes 0, 1, 2
@@ -920,37 +919,6 @@ class RearrangeEnv:
                 "receptacle": self.receptacle_label(), "reward_terms": terms, "picked": self._picked,
                 "holding": self._held >= 0, "perturbed": self._perturbed, "contact_force": float(force),
                 "steps": self._steps}
-
-
-# --- optional Gymnasium wrapper (gymnasium is not a requirement) ---
-
-def gym_env(**kwargs):
-    """A gymnasium.Env around RearrangeEnv (imports gymnasium lazily); the grip is a Box value
-    rounded to {-1, 0, 1}, since Gymnasium spaces cannot mix continuous and discrete entries."""
-    import gymnasium
-    from gymnasium import spaces
-
-    class GymRearrange(gymnasium.Env):
-        metadata = {"render_modes": []}
-
-        def __init__(self):
-            self.env = RearrangeEnv(**kwargs)
-            n = self.env.config.depth_size
-            box = lambda k: spaces.Box(-np.inf, np.inf, (k,), np.float32)
-            self.observation_space = spaces.Dict({"depth": spaces.Box(0.0, 1.0, (n, n, 1), np.float32),
-                                                  **{k: box(s) for k, s in STATE_LAYOUT}})
-            self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
-
-        def reset(self, seed=None, options=None):
-            super().reset(seed=seed)
-            return self.env.reset(seed=seed, options=options)
-
-        def step(self, action):
-            a = np.array(action, np.float64)
-            a[GRIP] = np.round(np.clip(a[GRIP], -1, 1))
-            return self.env.step(a)
-
-    return GymRearrange()
 
 
 # --- command line: benchmark, viewer, MJCF export ---

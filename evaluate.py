@@ -16,18 +16,13 @@ So numbers are comparable across runs and do not depend on the number of workers
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \\
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
 
-Table 1 (Sec. 5.3): success rate in % on All, Easy, Hard and Very Hard episodes. With one checkpoint
+Table 1 (Sec. 5.3): success in % on All, Easy, Hard and Very Hard episodes; with one checkpoint
 the +- is over rollout seeds (--seeds), with several over training seeds. Table 2 (Sec. 5.4): on
-episodes whose target starts in a closed drawer, the rate of picking the target and the accuracy
-of the predicted skill against the ground-truth rule of Appendix D (info["skill_gt"]), without
-and with the perturbation (the drawer snaps shut once after it has been open for a while).
-
-Beside each rollout an oracle expert on the same env labels every visited state with the skill it
-would choose there (the training label; its action is not used), which gives two more measures of
-the skill module in closed loop: its accuracy against that label, and its lock-in, the share of
-steps of easy episodes (nothing to open) on which it predicts open_drawer or open_fridge.
-Results go to --out (JSON with every rollout: outcome, failure, skill counts, and where it ended,
-held_at_end and goal_distance_at_end) and the same name with .md (the tables).
+episodes whose target starts in a closed drawer, the rate of picking it and the skill accuracy
+against the Appendix D rule, without and with the perturbation. An oracle expert beside each
+rollout labels every visited state with its skill, for two more measures of the skill module: its
+accuracy against that label, and its lock-in (the share of steps of easy episodes on which it
+predicts an opening skill). Results go to --out (JSON with every rollout) and its .md (the tables).
 """
 import argparse
 import dataclasses
@@ -63,8 +58,7 @@ class Config:
     workers: int = 2
     """worker processes, each with its own simulators and policies"""
     batch: int = 8
-    """episodes a worker runs in lock-step, one policy call for all (a network step costs about
-    the same for 8 as for 1 on a CPU); fixes which episodes share a batch, so keep it to compare runs"""
+    """episodes a worker runs in lock-step, one policy call for all; keep it to compare runs"""
     perturb: bool = False
     """run the perturbation test (Table 2) instead of Table 1"""
     perturb_after: int = 0
@@ -84,8 +78,7 @@ class Config:
     log_every: float = 10.0
     """seconds between progress lines"""
     plot: str = ""
-    """draw Fig. 3 (success and picked per architecture, context length, number of demos) to this
-    PNG; needs matplotlib; without --policy it redraws from the JSON at --out"""
+    """draw Fig. 3 to this PNG (needs matplotlib); without --policy it redraws from the JSON at --out"""
 
 
 EVAL_SEED = 0                                   # fixed seed of the evaluation episode lists
@@ -123,20 +116,6 @@ def eval_episodes(split, n, perturb, difficulty=""):
 
 # --- policies ---
 
-def load_checkpoint(path, batch=1):
-    """model.load_policy with clear errors: FileNotFoundError or ValueError naming the path."""
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        return model.load_policy(path, device="cpu", batch=batch)
-    except Exception as err:  # whatever torch.load or the model raise, the cause is the file
-        if isinstance(err, ValueError) and path in str(err):
-            raise
-        reason = " ".join(str(err).split())[:300]
-        raise ValueError(f"{path}: not a policy checkpoint written by train.py "
-                         f"({type(err).__name__}: {reason})") from err
-
-
 def parse_method(spec, cfg):
     """One --policy value -> {name, spec, variant, members: [(ref, env_config)]}."""
     overrides = {"max_steps": cfg.max_steps} if cfg.max_steps else {}
@@ -149,7 +128,7 @@ def parse_method(spec, cfg):
                 "members": [(spec, dataclasses.asdict(env.EnvConfig(**kwargs)))]}
     members, variants = [], set()
     for path in spec.split(","):
-        policy = load_checkpoint(path)
+        policy = model.load_policy(path)
         variants.add(policy.variant)
         members.append((path, dict(policy.env_config, **overrides)))
     if len(variants) > 1:
@@ -236,7 +215,7 @@ def actor(ref, env_config, n=1):
     policy_key = (ref, env_key, n) if ref.startswith("expert:") else (ref, n)   # an expert reads its envs
     if policy_key not in _policies:
         _policies[policy_key] = (ExpertBatch(envs[:n], ref.split(":", 1)[1]) if ref.startswith("expert:")
-                                 else load_checkpoint(ref, batch=n))
+                                 else model.load_policy(ref, batch=n))
     return _policies[policy_key], envs[:n]
 
 

@@ -1,16 +1,13 @@
 """Skill Transformer (Huang, Batra, Rai, Szot, ICCV 2023, Sec. 4) and its baselines, in one file.
 
-A shared observation encoder turns each step's depth image and proprioceptive state into a token
-x_t. The Skill Inference module, a causal transformer over x_{t-C+1..t}, predicts the active skill
-(and, for training only, which receptacle holds the target). The Action Inference module, a causal
-transformer over the interleaved tokens (x_t, a_{t-1}, z_t), predicts the whole-body action: arm
-and base means and a 3-way grip distribution. The paper trains with the true skills as z (teacher
-forcing, Sec. 4.2) and a rollout feeds the predicted ones; with ModelConfig.skill_sample > 0 a
-share of the training steps also gets the skill module's own prediction (scheduled sampling,
-Bengio et al. 2015), so that action inference learns to act on the skills it will be given.
-With ModelConfig.prev_action=False (train.py's default) the a_{t-1} tokens are left out: with
-them the policy learns to copy its last action (the copycat problem of behaviour cloning from
-histories, Wen et al. 2020).
+A shared encoder turns each step's depth image and state into a token x_t. Skill Inference, a
+causal transformer over x_{t-C+1..t}, predicts the active skill (and, in training, which receptacle
+holds the target). Action Inference, a causal transformer over the interleaved tokens
+(x_t, a_{t-1}, z_t), predicts the arm and base means and a 3-way grip distribution. Training feeds
+the true skills as z (teacher forcing, Sec. 4.2), except a skill_sample share of the steps, which
+get the skill module's own prediction (scheduled sampling, Bengio et al. 2015), as a rollout does.
+With prev_action=False (train.py's default) the a_{t-1} tokens are left out (the copycat problem,
+Wen et al. 2020).
 
 Baselines (Sec. 5.2, Sec. 5.5, Appendix C.2), chosen by ModelConfig.variant:
     st        Skill Transformer
@@ -34,10 +31,8 @@ import torch.nn.functional as F
 import env
 
 VARIANTS = ("st", "no_skill", "lstm", "dt", "dt_skill")
-# The reach's targets, cup to object and cup to goal in the base frame. Normalised by their spread
-# over whole episodes (horizontal std 1.1-2.5 m, navigation included) a centimetre is ~0.008 of a
-# unit, and the models' 2x64 state MLP fitted on the reach steps then misses in closed loop: 16 of
-# 50 picks held, 50 of 50 with these vectors also at 10 cm scale (ModelConfig.near_scale).
+# The reach's targets (cup to object, cup to goal): normalised over whole episodes a centimetre is
+# ~0.008 of a unit, too fine for the reach; ModelConfig.near_scale adds them at 10 cm scale (M9).
 NEAR_FIELDS = ("obj_start", "goal")
 _offsets = np.cumsum([0] + [n for _, n in env.STATE_LAYOUT])
 NEAR_INDEX = [i for (name, n), o in zip(env.STATE_LAYOUT, _offsets) if name in NEAR_FIELDS for i in range(o, o + n)]
@@ -61,8 +56,7 @@ class ModelConfig:
     d_state: int = 64
     """state embedding size (paper: 256)"""
     near_scale: float = 0.1
-    """metres: with > 0 the state MLP also reads tanh(v / near_scale) of the cup-to-object and
-    cup-to-goal vectors (NEAR_FIELDS), a view at centimetre resolution for the reach; 0: off"""
+    """metres: > 0 also feeds tanh(v / near_scale) of the NEAR_FIELDS vectors to the state MLP; 0: off"""
     d_model: int = 128
     """transformer width (paper: 512; 128 keeps a rollout step under 5 ms on one CPU core)"""
     n_layer: int = 2
@@ -76,9 +70,8 @@ class ModelConfig:
     prev_action: bool = True
     """a_{t-1} tokens in action inference, as the paper; False leaves them out (train.py's default)"""
     skill_sample: float = 0.5
-    """st/lstm, training only: each step's z_t is, with this probability, the skill module's own
-    (detached) argmax instead of the true skill (scheduled sampling), as a rollout feeds it;
-    0: pure teacher forcing, as the paper (Sec. 4.2)"""
+    """st/lstm, training only: probability that z_t is the skill module's own (detached) argmax
+    instead of the true skill (scheduled sampling); 0: teacher forcing, as the paper (Sec. 4.2)"""
 
 
 # --- observation encoders (Sec. 4.1 "Input") ---
@@ -325,7 +318,7 @@ def load_checkpoint(path, device="cpu"):
     """torch.load(weights_only=True) with clear errors for a missing file or a foreign format."""
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"checkpoint {path!r} does not exist")
+        raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
         ckpt = torch.load(path, map_location=device, weights_only=True)
     except Exception as e:
@@ -353,11 +346,9 @@ def model_from_checkpoint(ckpt, device="cpu"):
 class Policy:
     """Acts in the env from raw observations, keeping the last C steps (Sec. 4.1, test time).
 
-    Per step only the new observation is encoded (past tokens x_t are cached in a rolling,
-    left-padded window); the transformers then run over the window, with the *predicted* skills
-    as z tokens, and only the current step's outputs are computed in the last layer. With
-    batch=B it acts for B episodes at once (evaluate.py's lock-step rollouts): on a CPU a step
-    costs about the same for 8 episodes as for 1, as the small network is bound by per-op overhead."""
+    Per step only the new observation is encoded (past tokens are cached in a rolling, left-padded
+    window); the transformers run over the window with the *predicted* skills as z, the last layer
+    for the current step only. With batch=B it acts for B episodes at once (evaluate.py)."""
 
     def __init__(self, model, env_config, rtg_max, device="cpu", batch=1):
         if model.cfg.state_dim != env.STATE_DIM:

@@ -15,15 +15,10 @@ the last checkpoint is kept, not the one of the best success on a few `seen` epi
     python train.py --data data/demos,data/dagger --out ckpt/st2.pt       # DAgger: the union of demo dirs
     python train.py --data data/heldout --validate ckpt/st.pt,ckpt/dt.pt   # fit on held-out demos
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
-    python train.py --data data/demos --out ckpt/st.pt --batch-size 256 --demos-per-epoch 320 \
-        --device cuda                          # four times the windows per epoch, on a GPU
 
 For --out ckpt/st.pt it writes ckpt/st.pt (the final model), ckpt/st.last.pt (every epoch, with
-the optimizer state, for --resume) and ckpt/st.csv (the log: losses, and each loss term's gradient
-norm on the shared encoder, to balance the terms with --skill-weight and --aux-weight). Load one
-for rollouts with model.load_policy("ckpt/st.pt"). The defaults (the CPU recipe) train a Skill
-Transformer in about 25 min on 2 CPU cores on 1,000 demos of collect.py (~950 steps on average,
-32x32 depth).
+the optimizer state, for --resume) and ckpt/st.csv (losses, and each loss term's gradient norm on
+the shared encoder). The defaults (the CPU recipe) take about 25 min on 2 CPU cores for 1,000 demos.
 """
 import argparse
 import contextlib
@@ -42,6 +37,7 @@ import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel as DDP
 
+import collect
 import env
 import model
 
@@ -60,8 +56,7 @@ class TrainConfig:
     d_model: int = 128
     """transformer width; the visual and state embeddings get half each (paper: 512)"""
     near_scale: float = 0.1
-    """metres: > 0 also feeds tanh(v / near_scale) of the cup-to-object and cup-to-goal vectors
-    to the state MLP (model.NEAR_FIELDS): the reach needs centimetres; 0: off"""
+    """metres: > 0 also feeds tanh(v / near_scale) of the reach targets (model.NEAR_FIELDS); 0: off"""
     n_layer: int = 2
     """layers per transformer (Sec. 4.1)"""
     n_head: int = 4
@@ -69,8 +64,7 @@ class TrainConfig:
     dropout: float = 0.0
     """dropout in the transformers; off: on a CPU it costs ~15% of a step"""
     epochs: int = 150
-    """epochs of demos_per_epoch demos; 150 x 80 = 12 passes over 1,000 demos (the paper's
-    schedule, Sec. 4.2: ~6)"""
+    """epochs of demos_per_epoch demos: 12 passes over 1,000 demos (the paper's schedule: ~6)"""
     warmup_epochs: int = 20
     """epochs of linear warm-up from lr_start to lr (Appendix A: 200 of 750 epochs)"""
     demos_per_epoch: int = 80
@@ -84,17 +78,14 @@ class TrainConfig:
     weight_decay: float = 0.1
     """AdamW weight decay on weight matrices (not on biases, norms, embeddings of position)"""
     prev_action: bool = False
-    """the paper's a_{t-1} tokens in action inference; off by default: with them the policy learns
-    to copy a_{t-1}, the easiest fit to smooth expert actions, and then stalls or turns the wrong
-    way in its own rollouts (the copycat problem)"""
+    """the paper's a_{t-1} tokens in action inference; off: with them the policy copies a_{t-1}
+    (the copycat problem, EXPERIMENTS.md)"""
     skill_sample: float = 0.5
-    """st/lstm: probability that a step's z_t is the skill module's own (detached) argmax instead
-    of the true skill (scheduled sampling: a rollout feeds the predicted skills); 0: the paper's
-    teacher forcing"""
+    """st/lstm: probability that a step's z_t is the skill module's own argmax instead of the true
+    skill (scheduled sampling); 0: the paper's teacher forcing"""
     skill_weight: float = 0.3
-    """weight of the skill loss (Eq. 1) in the sum (the paper's: 1). Measured on the shared encoder
-    over the first epochs on data/v10, the gradient norms of skill, aux, arm, base and grip were
-    2-4, 5-9, 0.2-0.9, 0.7-2.7 and 0.1-0.2: at 1 the two classification terms swamp the actions"""
+    """weight of the skill loss (Eq. 1; the paper's: 1). On data/v10 the encoder gradient norms of
+    skill, aux, arm, base, grip were 2-4, 5-9, 0.2-0.9, 0.7-2.7, 0.1-0.2: at 1 they swamp the actions"""
     aux_weight: float = 0.1
     """weight of the auxiliary receptacle loss (Eq. 3) in the sum (the paper's: 1); see skill_weight"""
     grad_clip: float = 1.0
@@ -108,16 +99,14 @@ class TrainConfig:
     resume: bool = False
     """continue from CKPT.last.pt (same model, same data env config)"""
     log_interval: int = 10
-    """iterations between log lines and CSV rows (losses averaged over them; gradient norms
-    measured on the last)"""
+    """iterations between log lines and CSV rows (mean losses; gradient norms of the last)"""
     device: str = "auto"
     """auto (cuda if available), cpu or cuda"""
     threads: int = 0
     """torch CPU threads per process (0: all cores divided among the DDP ranks)"""
     validate: str = ""
-    """CKPT (or several, joined by commas): train nothing; measure its teacher-forced fit on the
-    demos of --data per skill, with the true and with its own predicted skills as z, print the
-    table and write it to CKPT.val.json (held-out demos: collect.py with another --seed)"""
+    """CKPT[,CKPT]: train nothing; print and write to CKPT.val.json the fit per skill on the demos
+    of --data, with the true and with the predicted skills as z"""
 
 
 LOSS_TERMS = ("loss", "skill", "aux", "arm", "base", "grip")
@@ -139,13 +128,6 @@ def get_lr(epoch, cfg):
 
 # --- data ---
 
-EPISODE_ARRAYS = {  # name: (dtype kind or exact dtype, per-step shape)
-    "depth": (np.uint8, None), "state": (np.float32, (env.STATE_DIM,)),
-    "action": (np.float32, (env.ACTION_DIM,)), "skill": ("int", ()), "receptacle": ("int", ()),
-    "reward": (np.float32, ()),
-}
-
-
 def load_meta(data_dir):
     """meta.json of a demo directory, checked against env's vocabulary."""
     path = os.path.join(data_dir, "meta.json")
@@ -156,45 +138,21 @@ def load_meta(data_dir):
             meta = json.load(f)
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e})") from e
-    if not isinstance(meta.get("env_config"), dict) or "depth_size" not in meta["env_config"]:
-        raise ValueError(f"{path}: expected an 'env_config' dict with 'depth_size', "
-                         f"got {meta.get('env_config')!r}")
-    expect = {"skills": list(env.SKILLS), "receptacles": list(env.RECEPTACLES),
-              "state_layout": [list(x) for x in env.STATE_LAYOUT]}
+    expect = json.loads(json.dumps({"skills": env.SKILLS, "receptacles": env.RECEPTACLES,
+                                    "state_layout": env.STATE_LAYOUT}))   # tuples -> lists, as on disk
     for key, want in expect.items():
-        got = [list(x) if isinstance(x, (list, tuple)) else x for x in meta.get(key, [])]
-        if got != want:
+        if meta.get(key) != want:
             raise ValueError(f"{path}: {key} is {meta.get(key)!r}, this code expects {want!r}")
     return meta
 
 
 def load_episode(path, size):
-    """One demo .npz -> dict of checked arrays, plus prev_action (a_{t-1}) and rtg (return-to-go)."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            ep = {k: z[k] for k in EPISODE_ARRAYS}
-    except KeyError as e:
-        raise ValueError(f"{path}: missing array {e}; expected {sorted(EPISODE_ARRAYS)}") from e
-    except Exception as e:
-        raise ValueError(f"{path}: cannot read as .npz ({type(e).__name__}: {e})") from e
-    T = len(ep["action"])
-    if T < 1:
-        raise ValueError(f"{path}: empty episode")
-    for k, (dtype, shape) in EPISODE_ARRAYS.items():
-        a = ep[k]
-        want_shape = (T, size, size) if k == "depth" else (T, *shape)
-        if a.shape != want_shape:
-            raise ValueError(f"{path}: {k} has shape {a.shape}, expected {want_shape}")
-        ok = np.issubdtype(a.dtype, np.integer) if dtype == "int" else a.dtype == dtype
-        if not ok:
-            raise ValueError(f"{path}: {k} has dtype {a.dtype}, expected {dtype}")
-        if a.dtype.kind == "f" and not np.isfinite(a).all():
-            raise ValueError(f"{path}: {k} has non-finite values")
-    for k, n in (("skill", len(env.SKILLS)), ("receptacle", len(env.RECEPTACLES) + 1)):
-        if ep[k].min() < 0 or ep[k].max() >= n:
-            raise ValueError(f"{path}: {k} ids must lie in [0, {n}), got [{ep[k].min()}, {ep[k].max()}]")
-    if not np.isin(ep["action"][:, env.GRIP], env.GRIP_VALUES).all():
-        raise ValueError(f"{path}: action[:, {env.GRIP}] (grip) must be one of {env.GRIP_VALUES}")
+    """One demo .npz, checked by collect.load_episode -> dict of its step arrays, plus prev_action
+    (a_{t-1}) and rtg (return-to-go)."""
+    data = collect.load_episode(path)
+    if data["depth"].shape[1:] != (size, size):
+        raise ValueError(f"{path}: depth has shape {data['depth'].shape}, expected (T, {size}, {size})")
+    ep = {k: data[k] for k in collect.STEP_ARRAYS}
     ep["skill"], ep["receptacle"] = ep["skill"].astype(np.int64), ep["receptacle"].astype(np.int64)
     return add_inputs(ep)
 
@@ -224,7 +182,7 @@ def cut_segments(demos, names):
             start = idx[0]
             while start > 0 and ep["skill"][start - 1] == nav:
                 start -= 1
-            pieces.append(add_inputs({k: ep[k][start:idx[-1] + 1] for k in EPISODE_ARRAYS}))
+            pieces.append(add_inputs({k: ep[k][start:idx[-1] + 1] for k in collect.STEP_ARRAYS}))
     return pieces
 
 
@@ -255,10 +213,9 @@ def load_demos(data, max_demos=0):
 
 
 def epoch_windows(lengths, cfg, epoch):
-    """Appendix A: an epoch draws demos_per_epoch demos (of the given lengths); windows end at steps
-    drawn uniformly from all their steps, as many as cover each step once, in whole batches. Same (seed, epoch) ->
-    same windows on every rank, which then takes its share of each batch. -> (n, 2) int array of
-    (demo, end step)."""
+    """Appendix A: an epoch draws demos_per_epoch demos; windows end at steps drawn uniformly from
+    theirs, as many as cover each step once, in whole batches. The same (seed, epoch) gives the same
+    windows on every rank, which takes its share of each batch. -> (n, 2) int array of (demo, end step)."""
     rng = np.random.default_rng([cfg.seed, epoch])
     chosen = rng.choice(len(lengths), size=min(cfg.demos_per_epoch, len(lengths)), replace=False)
     ends = every_step(lengths, chosen)
