@@ -215,10 +215,9 @@ _worker_env, _worker_policy = {}, {}   # per process: simulator and policy, buil
 
 
 def record_episode(e, episode, seed, noise=0.0, nav_noise=0.0, events=0.0, policy=None, beta=0.0, segment=10):
-    """Run one episode -> dict of arrays in the file format; the stored action is always the oracle
-    expert's clean label. Executed: the expert's DART-noised action, or with a policy (model.Policy)
-    its action in the segments of `segment` steps that the expert (probability beta) does not drive.
-    Before a step, with probability events / 1000, a perturbation event (perturb) changes the state."""
+    """Run one episode -> dict of arrays in the file format, the stored action the oracle's clean
+    label. Executed: the expert's noised action, or a policy's in the segments the expert (probability
+    beta) does not drive. Before a step, with probability events / 1000, an event (perturb) strikes."""
     x = expert.Expert(e, plan="oracle", seed=seed, noise=noise, nav_noise=nav_noise)
     obs, info = e.reset(seed=seed, options={"episode": episode})
     x.reset()

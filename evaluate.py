@@ -144,16 +144,11 @@ def parse_method(spec, cfg):
 # --- one rollout ---
 
 def rollout(policy, envs, episodes, seeds, on_step=None):
-    """Run episodes in lock-step, episode i in envs[i], the policy acting for all of them at once
-    (act_batch(obs list, rewards) -> actions, skills) -> one result dict per episode.
-
-    The reward passed to the policy is that of the previous step (0 on the first), which only the
-    Decision Transformer baselines read. Skill accuracy compares the policy's skill for an
-    observation with two labels of the same state: the Appendix D rule (the info that came with
-    the obs) and the skill an oracle expert chooses there (its act() before the step; the action
-    is dropped). A finished episode's env stands still while the others go on; on_step sees
-    episode 0's obs.
-    """
+    """Run episodes in lock-step, episode i in envs[i], one act_batch call for all -> one result
+    dict per episode. The policy gets the previous step's reward (read by the dt variants only).
+    The policy's skill is scored against two labels of the same state: the Appendix D rule
+    (info["skill_gt"]) and the skill an oracle expert chooses there (its action is dropped).
+    A finished episode's env stands still while the others go on; on_step sees episode 0's obs."""
     n = len(episodes)
     obs, infos = map(list, zip(*[e.reset(seed=s, options={"episode": ep})
                                  for e, ep, s in zip(envs, episodes, seeds)]))
