@@ -467,6 +467,7 @@ def dataset_stats(out):
     names = sorted(n for n in os.listdir(out) if n.endswith(".npz"))
     skills = np.zeros(len(env.SKILLS), np.int64)
     events = np.zeros(len(EVENTS), np.int64)
+    still = inner = 0
     by_diff = {d: [0, 0] for d in env.DIFFICULTIES}
     lengths, size = [], sum(os.path.getsize(os.path.join(out, n)) for n in os.listdir(out))
     for name in names:
@@ -479,6 +480,9 @@ def dataset_stats(out):
         by_diff[str(data["difficulty"])][1] += bool(data["success"])
         lengths.append(len(data["action"]))
         events += data["events"]
+        a = data["action"][:-30]                # a label that waits: still arm, still base, no grip
+        still += int(((np.abs(a[:, :9]).max(1) < 0.02) & (a[:, 9] == 0)).sum())
+        inner += len(a)
     n = len(names)
     return {"episodes": n, "steps": int(sum(lengths)),
             "steps_min_mean_max": [min(lengths, default=0), float(np.mean(lengths)) if n else 0.0,
@@ -487,7 +491,7 @@ def dataset_stats(out):
             "success": sum(v[1] for v in by_diff.values()) / max(n, 1),
             "by_difficulty": {d: {"episodes": v[0], "success": v[1] / max(v[0], 1)} for d, v in by_diff.items()},
             "events_per_episode": {k: float(v) / max(n, 1) for k, v in zip(EVENTS, events)},
-            "bytes": size}
+            "still_share": still / max(inner, 1), "bytes": size}
 
 
 def print_stats(out):
@@ -500,6 +504,7 @@ def print_stats(out):
     for d, v in s["by_difficulty"].items():
         print(f"  {d:9s} {v['episodes']:6d} episodes, success {100 * v['success']:.1f}%")
     print("events per episode: " + ", ".join(f"{k} {v:.2f}" for k, v in s["events_per_episode"].items()))
+    print(f"still labels (|arm|, |base| < 0.02, grip keep) outside the last 30 steps: {100 * s['still_share']:.2f}%")
     print(f"size on disk {s['bytes'] / 2**20:.1f} MiB ({s['bytes'] / 2**10 / max(s['episodes'], 1):.0f} KiB/episode)")
     return s
 

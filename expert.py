@@ -149,8 +149,10 @@ class Expert:
             return "place", self._hold(grip=-1.0)
         goal_closed = self.plan == "oracle" and ep.goal_receptacle and self._closed(ep.goal_receptacle - 1)
         if p["held"] == k:
-            if goal_closed and p["open_fraction"][ep.goal_receptacle - 1] < CARRY_OPEN:                                      # it cannot be opened with the object in
-                return "place", self._hold(grip=-1.0)            # the cup: put it down, open, pick again
+            # the goal's receptacle shut: it cannot be opened with the object in the cup, so put it
+            # down, open, pick again (collect.py's events never shut it while the target is carried)
+            if goal_closed and p["open_fraction"][ep.goal_receptacle - 1] < CARRY_OPEN:
+                return "place", self._hold(grip=-1.0)
             goal, place = np.asarray(p["goal"]), ep.goal_place
             if self._at_work(goal, place):
                 return "place", self._place_step(goal, place)

@@ -530,6 +530,7 @@ def test_collect_round_trip(demos):
     assert "3 episodes" in stats and "success 100.0%" in stats and "navigate" in stats
     assert "events per episode: shut 0.00, push 0.00, drop 0.00" in stats
     assert collect.dataset_stats(demos)["events_per_episode"] == dict.fromkeys(collect.EVENTS, 0.0)
+    assert "still labels" in stats and collect.dataset_stats(demos)["still_share"] < 0.02   # labels never wait
 
 
 def test_collect_same_with_two_workers(demos, tmp_path):
