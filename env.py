@@ -717,25 +717,24 @@ class RearrangeEnv:
                 self._handle = k
             d.eq_active[eq] = 1
 
-    def _contact_force(self):
-        """Largest total normal force between robot and scene in this physics step (N).
-
-        Contacts of the cup (it must touch what it grasps) and of the held object are excluded."""
+    def robot_contacts(self):
+        """Normal forces (N) and world positions of the robot-scene contacts in the data now, the
+        contacts of the cup (it must touch what it grasps) and of the held object excepted."""
         d, ids = self.data, self.ids
-        if d.ncon == 0:
-            return 0.0
         g = d.contact.geom[:d.ncon]
         rob = ids["is_robot"][g]
-        mask = rob[:, 0] ^ rob[:, 1]
-        mask &= (g[:, 0] != ids["cup"]) & (g[:, 1] != ids["cup"])
+        mask = (rob[:, 0] ^ rob[:, 1]) & (g[:, 0] != ids["cup"]) & (g[:, 1] != ids["cup"])
         if self._held >= 0:
             hg = ids["obj_geom"][self._held]
             mask &= (g[:, 0] != hg) & (g[:, 1] != hg)
         adr = d.contact.efc_address[:d.ncon]
         mask &= adr >= 0
-        if not mask.any():
-            return 0.0
-        return float(np.abs(d.efc_force[adr[mask]]).sum())   # elliptic cones: first row = normal force
+        # elliptic cones: a contact's first constraint row is its normal force
+        return np.abs(d.efc_force[adr[mask]]), d.contact.pos[:d.ncon][mask]
+
+    def _contact_force(self):
+        """Total normal force between robot and scene in this physics step (N)."""
+        return float(self.robot_contacts()[0].sum()) if self.data.ncon else 0.0
 
     def _perturb(self):
         """Sec. 5.4: the receptacle holding the target snaps shut once, after being open a while."""

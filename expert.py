@@ -314,11 +314,9 @@ class Expert:
     def _clearance(self, body, half=env.OBJ_HALF):
         """Air under a body (m): a ray straight down from `half` below its centre, missing the robot
         and the body itself."""
-        g = np.ones(6, np.uint8)
-        g[env.ROBOT_GROUP] = 0
         start = self.env.data.xpos[body] - [0, 0, half + 0.002]
-        gid = np.zeros(1, np.int32)
-        dist = mujoco.mj_ray(self.m, self.env.data, start, DOWN, g, 1, int(body), gid)
+        gid = np.zeros(1, np.int32)      # env's depth camera's geom groups: the robot left out
+        dist = mujoco.mj_ray(self.m, self.env.data, start, DOWN, self.env._geomgroup, 1, int(body), gid)
         return np.inf if dist < 0 else dist
 
     def _stow(self):
@@ -525,26 +523,12 @@ class Expert:
         return self._arm_action(env.ARM_REST, (v, w))
 
     def _contact(self):
-        """Where the robot presses on the scene with more than CONTACT_FORCE (the cup and a held object
-        excepted, as in env's collision measure) -> a world point, or None."""
-        e = self.env
-        d, ids = e.data, self.ids
-        g = d.contact.geom[:d.ncon]
-        if not len(g):
+        """Where the robot presses on the scene with more than CONTACT_FORCE (env's collision measure's
+        contacts) -> a world point, or None."""
+        force, pos = self.env.robot_contacts()
+        if not len(force) or force.max() < CONTACT_FORCE:
             return None
-        rob = ids["is_robot"][g]
-        mask = (rob[:, 0] ^ rob[:, 1]) & (g[:, 0] != ids["cup"]) & (g[:, 1] != ids["cup"])
-        if self.p["held"] >= 0:
-            hg = ids["obj_geom"][self.p["held"]]
-            mask &= (g[:, 0] != hg) & (g[:, 1] != hg)
-        adr = d.contact.efc_address[:d.ncon]
-        mask &= adr >= 0
-        if not mask.any():
-            return None
-        force = np.abs(d.efc_force[adr[mask]])
-        if force.max() < CONTACT_FORCE:
-            return None
-        return d.contact.pos[:d.ncon][mask][np.argmax(force)].copy()
+        return pos[np.argmax(force)].copy()
 
     def _lookahead(self, pos, goal):
         """The point LOOKAHEAD cells down the distance field from the base (the goal itself near it)."""
