@@ -12,6 +12,7 @@ So numbers are comparable across runs and do not depend on the number of workers
                        --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
     python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
+    python evaluate.py --policy pretrained/st.pt --episode-seed 1            # a fresh test set
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \\
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
@@ -63,6 +64,9 @@ class Config:
     """run the perturbation test (Table 2) instead of Table 1"""
     perturb_after: int = 0
     """with --perturb: steps the receptacle stays open before it snaps shut; 0 keeps the env's 50"""
+    episode_seed: int = 0
+    """seed of the episode lists and reset seeds: 0 is the list every recorded result uses (and was
+    tuned on); another gives a fresh test set of the same mix that no experiment has seen"""
     difficulty: str = ""
     """only episodes of this difficulty (easy, hard, very_hard): the first N of the split that have it"""
     max_steps: int = 0
@@ -81,32 +85,32 @@ class Config:
     """draw Fig. 3 to this PNG (needs matplotlib); without --policy it redraws from the JSON at --out"""
 
 
-EVAL_SEED = 0                                   # fixed seed of the evaluation episode lists
+EVAL_SEED = 0        # seed of the evaluation episode lists that every result in the record uses
 GROUPS = (("all", "All"), ("easy", "Easy"), ("hard", "Hard"), ("very_hard", "Very Hard"))
 OPENING = (env.SKILL_IDS["open_drawer"], env.SKILL_IDS["open_fridge"])
 CONDITIONS = ("no_perturb", "perturb")
 
 
-def reset_seed(split, index, rollout_seed):
+def reset_seed(split, index, rollout_seed, episode_seed=EVAL_SEED):
     """Reset seed of one rollout: a function of the episode and the rollout seed only."""
-    return int(np.random.SeedSequence([EVAL_SEED, env.SPLITS[split], index, rollout_seed]).generate_state(1)[0])
+    return int(np.random.SeedSequence([episode_seed, env.SPLITS[split], index, rollout_seed]).generate_state(1)[0])
 
 
 def target_in_drawer(episode):
     return episode.obj_receptacle > 0 and env.RECEPTACLES[episode.obj_receptacle - 1].startswith("drawer")
 
 
-def eval_episodes(split, n, perturb, difficulty=""):
+def eval_episodes(split, n, perturb, difficulty="", episode_seed=EVAL_SEED):
     """The fixed episode list: the first n of the split, or the first n that pass the filters (with
     perturb: target in a closed drawer; with difficulty: of that difficulty)."""
     if difficulty and difficulty not in env.DIFFICULTIES:
         raise ValueError(f"--difficulty must be one of {env.DIFFICULTIES} or empty, got {difficulty!r}")
     keep = lambda ep: (not perturb or target_in_drawer(ep)) and (not difficulty or ep.difficulty == difficulty)
     if not perturb and not difficulty:
-        return env.make_episodes(split, n, seed=EVAL_SEED)
+        return env.make_episodes(split, n, seed=episode_seed)
     drawn = 4 * n
     while True:
-        chosen = [ep for ep in env.make_episodes(split, drawn, seed=EVAL_SEED) if keep(ep)]
+        chosen = [ep for ep in env.make_episodes(split, drawn, seed=episode_seed) if keep(ep)]
         if len(chosen) >= n:
             return chosen[:n]
         if drawn > 100 * n + 1000:
@@ -422,13 +426,13 @@ def write_videos(cfg, methods, split):
         if render is None:
             print(f"video: RGB rendering unavailable ({why}); run with MUJOCO_GL=egl (or osmesa) "
                   f"for it. Writing the head depth camera instead.", flush=True)
-        for ep in eval_episodes(split, cfg.video_episodes, cfg.perturb):
+        for ep in eval_episodes(split, cfg.video_episodes, cfg.perturb, episode_seed=cfg.episode_seed):
             folder = os.path.join(cfg.video, f"{m['variant']}_{split}_{ep.index:04d}")
             os.makedirs(folder, exist_ok=True)
             frames = []
             grab = (lambda obs: frames.append(render())) if render else \
                 (lambda obs: frames.append(env.depth_to_uint8(obs["depth"])))
-            r = rollout(policy, envs, [ep], [reset_seed(split, ep.index, 0)], on_step=grab)[0]
+            r = rollout(policy, envs, [ep], [reset_seed(split, ep.index, 0, cfg.episode_seed)], on_step=grab)[0]
             for t, frame in enumerate(frames):
                 write_png(os.path.join(folder, f"{t:05d}.png"), frame)
             print(f"video: {folder} ({len(frames)} frames, success {r['success']})", flush=True)
@@ -442,18 +446,21 @@ def evaluate(cfg):
         raise ValueError(f"--split must be seen, unseen or both, got {cfg.split!r}")
     if not cfg.policy:
         raise ValueError("give at least one --policy (a checkpoint, expert:oracle or expert:fixed)")
+    if cfg.episode_seed < 0:
+        raise ValueError(f"--episode-seed must be >= 0, got {cfg.episode_seed}")
     if cfg.batch < 1 or cfg.workers < 1 or cfg.episodes < 1 or cfg.seeds < 1:
         raise ValueError(f"--batch, --workers, --episodes and --seeds must be >= 1, got {cfg.batch}, "
                          f"{cfg.workers}, {cfg.episodes}, {cfg.seeds}")
     splits = ["seen", "unseen"] if cfg.split == "both" else [cfg.split]
     methods = [parse_method(spec, cfg) for spec in cfg.policy]
     conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
-    episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty) for s in splits}
+    episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty, cfg.episode_seed) for s in splits}
     # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list: the same
     # batches (and so the same numbers) whatever the number of workers.
     chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
     jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
-             ref, dict(env_config, perturb=c == "perturb", **({"perturb_after": cfg.perturb_after} if cfg.perturb_after else {})), chunk, [reset_seed(s, ep.index, seed) for ep in chunk])
+             ref, dict(env_config, perturb=c == "perturb", **({"perturb_after": cfg.perturb_after} if cfg.perturb_after else {})), chunk,
+             [reset_seed(s, ep.index, seed, cfg.episode_seed) for ep in chunk])
             for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
             for s in splits for c in conditions for chunk in chunks[s]]
     n_total = sum(len(job[3]) for job in jobs)
@@ -480,7 +487,7 @@ def evaluate(cfg):
         mine = [r for r in rollouts if r["method"] == i]
         m["results"] = {s: {c: aggregate(m, [r for r in mine if (r["split"], r["condition"]) == (s, c)])
                             for c in conditions} for s in splits}
-    results = {"config": dataclasses.asdict(cfg), "eval_seed": EVAL_SEED, "splits": splits,
+    results = {"config": dataclasses.asdict(cfg), "eval_seed": cfg.episode_seed, "splits": splits,
                "versions": {"python": platform.python_version(), "numpy": np.__version__,
                             "mujoco": mujoco.__version__, "torch": torch.__version__},
                "methods": methods, "rollouts": rollouts}

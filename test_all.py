@@ -1137,6 +1137,17 @@ def test_difficulty_filter_keeps_the_list_order():
         evaluate.eval_episodes("seen", 3, False, "medium")
 
 
+def test_episode_seed_gives_a_fresh_test_set():
+    usual, fresh = evaluate.eval_episodes("unseen", 8, False), evaluate.eval_episodes("unseen", 8, False, episode_seed=1)
+    key = lambda eps: [(ep.layout, tuple(np.round(np.ravel(ep.objects), 4)), tuple(np.round(ep.goal, 4))) for ep in eps]
+    assert key(usual) == key(evaluate.eval_episodes("unseen", 8, False, episode_seed=evaluate.EVAL_SEED))
+    assert key(usual) != key(fresh)
+    assert [ep.difficulty for ep in usual] == [ep.difficulty for ep in fresh]   # the same mix
+    assert evaluate.reset_seed("unseen", 0, 0) != evaluate.reset_seed("unseen", 0, 0, episode_seed=1)
+    with pytest.raises(ValueError, match="episode-seed"):
+        evaluate.evaluate(evaluate.Config(policy=["expert:oracle"], episode_seed=-1))
+
+
 def test_bad_data_is_refused(tmp_path):
     data = write_demos(str(tmp_path / "d"), n_episodes=2)
     with open(os.path.join(data, "ep_000001.npz"), "wb") as f:
