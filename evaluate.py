@@ -3,9 +3,11 @@
 A policy is a checkpoint written by train.py, several checkpoints of one method joined by commas
 (training seeds: the table shows mean +- std over them), or the scripted expert: `expert:oracle`
 (our M3 (Oracle): the plan comes from the simulator) or `expert:fixed` (nav, pick, nav, place,
-like TP-SRL / M3). Episodes come from a fixed list, env.make_episodes(split, n, seed=0), and each
-rollout's reset seed is a function of (split, episode, rollout seed); a worker runs consecutive
-episodes of the list in lock-step batches (--batch), one network call per step for all of them.
+like TP-SRL / M3), or BC-Modular's skill policies under a planner, `modular:fixed:STEM` and
+`modular:oracle:STEM` (BC-Modular (Oracle); STEM_<skill>.pt from train.py --skill). Episodes come
+from a fixed list, env.make_episodes(split, n, seed=0), and each rollout's reset seed is a function
+of (split, episode, rollout seed); a worker runs consecutive episodes of the list in lock-step
+batches (--batch), one network call per step for all of them.
 So numbers are comparable across runs and do not depend on the number of workers.
 
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --policy expert:fixed \\
@@ -13,6 +15,7 @@ So numbers are comparable across runs and do not depend on the number of workers
     python evaluate.py --policy ckpt/st_s0.pt,ckpt/st_s1.pt,ckpt/st_s2.pt --split both
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
     python evaluate.py --policy pretrained/st.pt --episode-seed 1            # a fresh test set
+    python evaluate.py --policy modular:fixed:ckpt/bcm --policy modular:oracle:ckpt/bcm   # BC-Modular
     python evaluate.py --policy expert:oracle --episodes 2 --video results/video
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \\
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
@@ -49,7 +52,8 @@ import model
 @dataclass
 class Config:
     policy: list = field(default_factory=list)
-    """a checkpoint, checkpoints joined by commas (training seeds), expert:oracle or expert:fixed; repeatable"""
+    """a checkpoint, checkpoints joined by commas (training seeds), expert:oracle, expert:fixed, or
+    modular:fixed:STEM / modular:oracle:STEM (BC-Modular: STEM_<skill>.pt of train.py --skill); repeatable"""
     split: str = "unseen"
     """unseen, seen, or both (side by side, as in the paper)"""
     episodes: int = 400
@@ -130,6 +134,23 @@ def parse_method(spec, cfg):
         kwargs = dict(overrides, **({"depth_size": cfg.depth_size} if cfg.depth_size else {}))
         return {"name": spec, "spec": spec, "variant": f"expert_{plan}",
                 "members": [(spec, dataclasses.asdict(env.EnvConfig(**kwargs)))]}
+    if spec.startswith("modular:"):   # modular:PLAN:STEM[,STEM]: STEM_<skill>.pt of train.py --skill
+        _, plan, stems = (spec.split(":", 2) + ["", ""])[:3]
+        if plan not in ("oracle", "fixed") or not stems:
+            raise ValueError(f"{spec!r}: expected modular:fixed:STEM or modular:oracle:STEM[,STEM]")
+        members = []
+        for stem in stems.split(","):
+            for s in ("navigate", "pick", "place") + (("open_drawer", "open_fridge") if plan == "oracle" else ()):
+                policy = model.load_policy(f"{stem}_{s}.pt")
+                if policy.variant != "no_skill" or policy.train_config.get("skill") != s:
+                    raise ValueError(f"{stem}_{s}.pt is not a BC-Modular {s} policy (train.py --variant "
+                                     f"no_skill --skill {s})")
+            members.append((f"modular:{plan}:{stem}", dict(policy.env_config, **overrides)))
+        variant = "bc_modular" + ("_oracle" if plan == "oracle" else "")
+        return {"name": f"{variant} ({stems})", "spec": spec, "variant": variant, "members": members,
+                "setting": {"variant": variant, "context": policy.cfg.context,
+                            "n_demos": policy.train_config.get("n_demos"), "segments": "",
+                            "epochs": policy.train_config.get("epochs")}}
     members, variants = [], set()
     for path in spec.split(","):
         policy = model.load_policy(path)
@@ -203,6 +224,75 @@ class ExpertBatch:
         return [a for a, _ in out], [z for _, z in out]
 
 
+class ModularBatch:
+    """BC-Modular (Sec. 5.2, Appendix C): one policy per skill (STEM_<skill>.pt, train.py --skill),
+    run in turn by a task planner that reads the simulator. plan="fixed": navigate, pick, navigate,
+    place; plan="oracle" (BC-Modular (Oracle)): first navigate to and open the goal's, then the
+    object's receptacle if closed at the start (the expert's order). A skill ends on its planner
+    condition (arrived; target held; target let go; receptacle open, handle let go, arm folded) or
+    on M3's timeout (navigation 500 steps, the others 200), and, as in the paper, a failed skill is
+    not run again. Each skill starts from a fresh context, as its policy was trained."""
+
+    TIMEOUT = {"navigate": 500, "pick": 200, "place": 200, "open_drawer": 200, "open_fridge": 200}
+
+    def __init__(self, envs, stem, plan):
+        skills = ("navigate", "pick", "place") + (("open_drawer", "open_fridge") if plan == "oracle" else ())
+        nets = {s: model.load_policy(f"{stem}_{s}.pt") for s in skills}
+        self.envs, self.plan = envs, plan
+        self.policies = [{s: model.Policy(p.model, p.env_config, p.rtg_max) for s, p in nets.items()} for _ in envs]
+        self.probes = [expert.Expert(e) for e in envs]   # its geometry tells where the robot stands
+
+    def reset(self):
+        self.todo, self.steps = [], []
+        for e, probe in zip(self.envs, self.probes):
+            p = e.privileged()
+            ep, todo = p["episode"], []
+            for r in (ep.goal_receptacle, ep.obj_receptacle) if self.plan == "oracle" else ():
+                if r and p["open_fraction"][r - 1] < expert.NEED_OPEN:
+                    todo += [("navigate", r - 1), (probe._open_skill(r - 1), r - 1)]
+            self.todo.append(todo + [("navigate", "pick"), ("pick", None), ("navigate", "place"), ("place", None)])
+            self.steps.append(0)
+        for policies in self.policies:
+            for pol in policies.values():
+                pol.reset()
+
+    def _done(self, i):
+        """Has env i's current skill met its planner condition?"""
+        probe, (skill, arg) = self.probes[i], self.todo[i][0]
+        probe.act()                                       # refreshes probe.p from the simulator
+        p, ep = probe.p, probe.p["episode"]
+        obj = p["objects"][ep.target]
+        if skill == "navigate" and arg == "pick":
+            return probe._at_work(obj, probe._support(obj))
+        if skill == "navigate" and arg == "place":
+            return probe._at_work(p["goal"], ep.goal_place)
+        if skill == "navigate":
+            return probe._at_pose(p["poses"]["fridge_door" if env.RECEPTACLES[arg] == "fridge" else "cabinet"])
+        if skill == "pick":
+            return p["held"] == ep.target
+        if skill == "place":
+            return p["held"] != ep.target
+        return p["open_fraction"][arg] >= expert.NEED_OPEN and p["handle"] < 0 and probe._folded()
+
+    def act_batch(self, obs, rewards):
+        actions, skills = [], []
+        for i, o in enumerate(obs):
+            while self.todo[i] and (self.steps[i] >= self.TIMEOUT[self.todo[i][0][0]] or self._done(i)):
+                self.todo[i].pop(0)                       # next skill, whether this one succeeded or not
+                self.steps[i] = 0
+                if self.todo[i]:
+                    self.policies[i][self.todo[i][0][0]].reset()
+            if not self.todo[i]:                          # the plan is over: stand still
+                actions.append(np.zeros(env.ACTION_DIM, np.float32))
+                skills.append(env.SKILL_IDS["place"])
+                continue
+            skill = self.todo[i][0][0]
+            actions.append(self.policies[i][skill].act(o)[0])
+            skills.append(env.SKILL_IDS[skill])
+            self.steps[i] += 1
+        return actions, skills
+
+
 _envs, _policies = {}, {}   # per worker process: built on first use, reused for later jobs
 
 
@@ -211,10 +301,15 @@ def actor(ref, env_config, n=1):
     env_key = json.dumps(env_config, sort_keys=True)
     envs = _envs.setdefault(env_key, [])
     envs += [env.RearrangeEnv(**env_config) for _ in range(n - len(envs))]
-    policy_key = (ref, env_key, n) if ref.startswith("expert:") else (ref, n)   # an expert reads its envs
+    policy_key = (ref, env_key, n) if ref.startswith(("expert:", "modular:")) else (ref, n)   # these read their envs
     if policy_key not in _policies:
-        _policies[policy_key] = (ExpertBatch(envs[:n], ref.split(":", 1)[1]) if ref.startswith("expert:")
-                                 else model.load_policy(ref, batch=n))
+        if ref.startswith("expert:"):
+            _policies[policy_key] = ExpertBatch(envs[:n], ref.split(":", 1)[1])
+        elif ref.startswith("modular:"):
+            _, plan, stem = ref.split(":", 2)
+            _policies[policy_key] = ModularBatch(envs[:n], stem, plan)
+        else:
+            _policies[policy_key] = model.load_policy(ref, batch=n)
     return _policies[policy_key], envs[:n]
 
 

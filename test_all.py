@@ -761,6 +761,109 @@ def test_evaluate_labels_the_policy_states_with_the_oracle_skill(checkpoints, tm
     assert rows[0][col] == evaluate.fmt(policy["opening_share_easy"])
 
 
+@pytest.fixture(scope="module")
+def modular(tmp_path_factory):
+    """Untrained tiny BC-Modular skill policies STEM_<skill>.pt, as train.py --skill writes them."""
+    stem = str(tmp_path_factory.mktemp("bcm") / "bcm")
+    env_config = dataclasses.asdict(env.EnvConfig(depth_size=DEPTH, max_steps=40))
+    cfg = model.ModelConfig(depth_size=DEPTH, context=4, d_vis=16, d_state=16, d_model=32, n_head=2,
+                            variant="no_skill")
+    for s in env.SKILLS:
+        torch.save({"model": model.SkillTransformer(cfg).state_dict(), "model_args": dataclasses.asdict(cfg),
+                    "env_config": env_config, "rtg_max": 0.0, "config": {"skill": s}}, f"{stem}_{s}.pt")
+    return stem
+
+
+def test_modular_planner_switches_on_its_conditions(modular):
+    """With the oracle expert driving, BC-Modular's planner runs navigate, pick, navigate, place,
+    switching to the pick where the expert's pick begins and leaving it on the step the target is
+    held; on a goal-closed episode the oracle plan first navigates to and opens the goal's receptacle."""
+    e = env.RearrangeEnv(depth_size=DEPTH)
+    ep = _first("easy", lambda ep: True)
+    batch = evaluate.ModularBatch([e], modular, "fixed")
+    obs, _ = e.reset(seed=0, options={"episode": ep})
+    batch.reset()
+    driver = expert.Expert(e)
+    planned, labels, held = [], [], []
+    for _ in range(1500):
+        planned.append(batch.act_batch([obs], [0.0])[1][0])
+        action, label = driver.act(obs)
+        labels.append(label)
+        held.append(e.privileged()["held"] == ep.target)
+        obs, _, terminated, truncated, info = e.step(action)
+        if terminated or truncated:
+            break
+    assert info["success"]
+    runs = [k for k, _ in itertools.groupby(planned)]
+    assert runs == [env.SKILL_IDS[s] for s in ("navigate", "pick", "navigate", "place")]
+    pick = env.SKILL_IDS["pick"]
+    assert planned.index(pick) == labels.index(pick)             # arrived: the same step as the expert
+    first_held = held.index(True)
+    assert planned[first_held - 1] == pick and planned[first_held] == env.SKILL_IDS["navigate"]
+    hard = _first("goal_closed", lambda ep: True)
+    oracle = evaluate.ModularBatch([e], modular, "oracle")
+    e.reset(seed=0, options={"episode": hard})
+    oracle.reset()
+    r = hard.goal_receptacle - 1
+    assert oracle.todo[0][:2] == [("navigate", r), (oracle.probes[0]._open_skill(r), r)]
+
+
+def test_modular_planner_moves_on_at_timeouts_and_never_retries(modular, monkeypatch):
+    """A skill that never meets its condition ends at its timeout and the next one starts (a fresh
+    context); after the last the robot stands still."""
+    monkeypatch.setattr(evaluate.ModularBatch, "TIMEOUT", {**evaluate.ModularBatch.TIMEOUT, "navigate": 4, "pick": 3, "place": 2})
+    e = env.RearrangeEnv(depth_size=DEPTH, max_steps=40)
+    obs, _ = e.reset(seed=0, options={"episode": _first("easy", lambda ep: True)})
+    batch = evaluate.ModularBatch([e], modular, "fixed")
+    batch.reset()
+    skills, actions = [], []
+    for _ in range(16):
+        a, z = batch.act_batch([obs], [0.0])
+        skills.append(z[0])
+        actions.append(a[0])
+        obs = e.step(a[0])[0]
+    nav, pick, place = (env.SKILL_IDS[s] for s in ("navigate", "pick", "place"))
+    assert skills[:13] == [nav] * 4 + [pick] * 3 + [nav] * 4 + [place] * 2
+    assert not batch.todo[0] and all(not np.any(a) for a in actions[13:])
+
+
+def test_bc_modular_train_and_evaluate(modular, tmp_path):
+    """train.py --skill trains on the runs of one skill (an epoch: the runs of demos_per_epoch
+    demos) and records the skill; evaluate.py runs modular:fixed:STEM and modular:oracle:STEM as
+    the BC-Modular rows, and refuses a STEM whose files are not skill policies."""
+    data = write_demos(str(tmp_path / "d"))
+    out = tmp_path / "m_pick.pt"
+    stdout = run_script([sys.executable, "train.py", "--data", data, "--out", str(out), "--variant", "no_skill",
+                         "--skill", "pick", "--epochs", "1", "--warmup-epochs", "1", "--batch-size", "4",
+                         "--d-model", "32", "--n-head", "2", "--context", "8", "--threads", "1"])
+    assert "runs of pick" in stdout
+    assert model.load_checkpoint(str(out))["config"]["skill"] == "pick"
+    bad = run("train.py", "--data", data, "--out", tmp_path / "x.pt", "--skill", "pick", check=False)
+    assert bad.returncode != 0 and "--variant no_skill" in bad.stderr
+    res = tmp_path / "bcm.json"
+    run("evaluate.py", "--policy", f"modular:fixed:{modular}", "--policy", f"modular:oracle:{modular}",
+        "--episodes", 2, "--workers", 1, "--out", res)
+    rows = parse_markdown_table((tmp_path / "bcm.md").read_text(), "Table 1")[1]
+    assert [r[0] for r in rows] == [f"bc_modular ({modular})", f"bc_modular_oracle ({modular})"]
+    bad = run("evaluate.py", "--policy", f"modular:fixed:{tmp_path / 'm'}", "--episodes", 1, check=False)
+    assert bad.returncode != 0 and "m_navigate.pt" in bad.stderr
+
+
+def test_skill_runs_cut_every_run_of_one_skill(tmp_path):
+    demos, _ = train.load_demos(write_demos(str(tmp_path / "d"), n_episodes=1, steps=(30, 31)))
+    ep = demos[0]
+    nav, pick = env.SKILL_IDS["navigate"], env.SKILL_IDS["pick"]
+    ep["skill"][:] = [nav] * 10 + [pick] * 5 + [nav] * 15
+    runs = train.skill_runs([ep], "navigate")
+    assert [len(r["skill"]) for r in runs] == [10, 15] and (runs[1]["skill"] == nav).all()
+    np.testing.assert_array_equal(runs[1]["state"], ep["state"][15:])
+    assert runs[1]["prev_action"][0].sum() == 0 and runs[1]["rtg"][0] == pytest.approx(ep["reward"][15:].sum(), rel=1e-5)
+    with pytest.raises(ValueError, match="expected one of"):
+        train.skill_runs([ep], "fly")
+    with pytest.raises(ValueError, match="no step"):
+        train.skill_runs([ep], "open_fridge")
+
+
 def test_evaluate_checkpoint_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothere.pt"):
         model.load_policy(str(tmp_path / "nothere.pt"))

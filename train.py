@@ -12,6 +12,8 @@ the last checkpoint is kept, not the one of the best success on a few `seen` epi
     python train.py --data data/demos --out ckpt/dt.pt --variant dt       # or no_skill, lstm, dt_skill
     python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
     python train.py --data data/demos --out ckpt/part.pt --segments nav-pick,nav-place   # Sec. 5.5
+    for s in navigate pick place open_drawer open_fridge; do                           # BC-Modular
+        python train.py --data data/demos --variant no_skill --skill $s --out ckpt/bcm_$s.pt; done
     python train.py --data data/demos,data/dagger --out ckpt/st2.pt       # DAgger: the union of demo dirs
     python train.py --data data/heldout --validate ckpt/st.pt,ckpt/dt.pt   # fit on held-out demos
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
@@ -96,6 +98,10 @@ class TrainConfig:
     """use only the first N demos in file order (0: all)"""
     segments: str = ""
     """train on pieces of the demos only, e.g. nav-pick,nav-place (Sec. 5.5); empty: whole demos"""
+    skill: str = ""
+    """BC-Modular (Sec. 5.2): train a policy for this skill alone (no_skill variant), on the runs of
+    steps the demos label with it, an epoch drawing the runs of demos_per_epoch demos: the five
+    together take one run's budget; evaluate.py --policy modular:fixed:STEM sequences them"""
     resume: bool = False
     """continue from CKPT.last.pt (same model, same data env config)"""
     log_interval: int = 10
@@ -186,6 +192,21 @@ def cut_segments(demos, names):
     return pieces
 
 
+def skill_runs(demos, skill):
+    """BC-Modular: every maximal run of steps labelled with the skill, each a demo of its own (a
+    skill policy starts from a fresh context, as the planner starts it in a rollout)."""
+    if skill not in env.SKILL_IDS:
+        raise ValueError(f"--skill {skill!r}: expected one of {env.SKILLS}")
+    pieces = []
+    for ep in demos:
+        edges = np.flatnonzero(np.diff(np.r_[0, (ep["skill"] == env.SKILL_IDS[skill]).astype(np.int8), 0]))
+        for a, b in zip(edges[::2], edges[1::2]):
+            pieces.append(add_inputs({k: ep[k][a:b] for k in collect.STEP_ARRAYS}))
+    if not pieces:
+        raise ValueError(f"no step of the demos is labelled {skill!r}")
+    return pieces
+
+
 def dict_diff(a, b):
     """Sorted keys whose values differ between two dicts (a key missing from one counts)."""
     return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
@@ -212,12 +233,13 @@ def load_demos(data, max_demos=0):
     return [load_episode(f, size) for f in files], meta
 
 
-def epoch_windows(lengths, cfg, epoch):
-    """Appendix A: an epoch draws demos_per_epoch demos; windows end at steps drawn uniformly from
-    theirs, as many as cover each step once, in whole batches. The same (seed, epoch) gives the same
-    windows on every rank, which takes its share of each batch. -> (n, 2) int array of (demo, end step)."""
+def epoch_windows(lengths, cfg, epoch, per_epoch=0):
+    """Appendix A: an epoch draws demos_per_epoch demos (or per_epoch pieces); windows end at steps
+    drawn uniformly from theirs, as many as cover each step once, in whole batches. The same (seed,
+    epoch) gives the same windows on every rank, which takes its share of each batch.
+    -> (n, 2) int array of (demo, end step)."""
     rng = np.random.default_rng([cfg.seed, epoch])
-    chosen = rng.choice(len(lengths), size=min(cfg.demos_per_epoch, len(lengths)), replace=False)
+    chosen = rng.choice(len(lengths), size=min(per_epoch or cfg.demos_per_epoch, len(lengths)), replace=False)
     ends = every_step(lengths, chosen)
     B = cfg.batch_size
     n = max(B, int(round(len(ends) / cfg.context)) // B * B)   # each step about once per epoch
@@ -341,10 +363,17 @@ def train(cfg):
     t0 = time.time()
     demos, meta = load_demos(cfg.data, cfg.max_demos)
     n_demos = len(demos)  # the dataset size (Fig. 3c), also when the demos are cut into pieces
+    if cfg.skill and cfg.variant != "no_skill":
+        raise ValueError(f"--skill trains one BC-Modular skill policy: use --variant no_skill, not {cfg.variant}")
     if cfg.segments:
         demos = cut_segments(demos, cfg.segments.split(","))
+    if cfg.skill:
+        demos = skill_runs(demos, cfg.skill)
+    # with --skill an epoch takes the runs of demos_per_epoch demos: the skill's share of the budget
+    per_epoch = round(cfg.demos_per_epoch * len(demos) / n_demos) if cfg.skill else 0
     lengths = [len(d["action"]) for d in demos]
-    log(f"loaded {len(demos)} {'pieces (' + cfg.segments + ')' if cfg.segments else 'demos'}, {sum(lengths)} steps, "
+    pieces = cfg.segments or (cfg.skill and "runs of " + cfg.skill)
+    log(f"loaded {len(demos)} {'pieces (' + pieces + ')' if pieces else 'demos'}, {sum(lengths)} steps, "
         f"depth {demos[0]['depth'].shape[1]}px from {cfg.data} in {time.time() - t0:.1f} s")
 
     # model
@@ -405,11 +434,11 @@ def train(cfg):
     sums, n_sum, t_start, it_done = {}, 0, time.time(), 0
     t_int = time.time()
     for epoch in range(start_epoch, cfg.epochs):
-        windows = epoch_windows(lengths, cfg, epoch)
+        windows = epoch_windows(lengths, cfg, epoch, per_epoch)
         iters = len(windows) // cfg.batch_size
         if epoch == start_epoch:
-            unit = "pieces" if cfg.segments else "demos"
-            log(f"epoch = {min(cfg.demos_per_epoch, len(lengths))} {unit}, {len(windows)} windows of "
+            unit = "pieces" if pieces else "demos"
+            log(f"epoch = {min(per_epoch or cfg.demos_per_epoch, len(lengths))} {unit}, {len(windows)} windows of "
                 f"{cfg.context} steps, {iters} iterations of {cfg.batch_size} windows")
         raw.train()
         for it in range(iters):
