@@ -154,7 +154,7 @@ def parse_method(spec, cfg):
     members, variants = [], set()
     for path in spec.split(","):
         policy = model.load_policy(path)
-        variants.add(policy.variant)
+        variants.add(policy.train_config.get("variant") or policy.variant)   # ppo.py's "mono" is a no_skill net
         members.append((path, dict(policy.env_config, **overrides)))
     if len(variants) > 1:
         raise ValueError(f"{spec}: checkpoints of different variants {sorted(variants)} in one row")
