@@ -1,10 +1,11 @@
 """Evaluate policies by rollouts: the paper's Table 1 (success by difficulty) and Table 2 (perturbation).
 
-A policy is a checkpoint written by train.py, several checkpoints of one method joined by commas
-(training seeds: the table shows mean +- std over them), or the scripted expert: `expert:oracle`
-(our M3 (Oracle): the plan comes from the simulator) or `expert:fixed` (nav, pick, nav, place,
-like TP-SRL / M3), or BC-Modular's skill policies under a planner, `modular:fixed:STEM` and
-`modular:oracle:STEM` (BC-Modular (Oracle); STEM_<skill>.pt from train.py --skill). Episodes come
+A policy is a checkpoint written by train.py or ppo.py, several checkpoints of one method joined
+by commas (training seeds: the table shows mean +- std over them), the scripted expert
+(`expert:oracle`, our M3 (Oracle): the plan comes from the simulator; `expert:fixed`: nav, pick,
+nav, place, like M3; `expert:tpsrl`: that plan with the base still while the arm works, as TP-SRL),
+or BC-Modular's skill policies under a planner, `modular:fixed:STEM` and `modular:oracle:STEM`
+(BC-Modular (Oracle); STEM_<skill>.pt from train.py --skill). Episodes come
 from a fixed list, env.make_episodes(split, n, seed=0), and each rollout's reset seed is a function
 of (split, episode, rollout seed); a worker runs consecutive episodes of the list in lock-step
 batches (--batch), one network call per step for all of them.
@@ -52,7 +53,7 @@ import model
 @dataclass
 class Config:
     policy: list = field(default_factory=list)
-    """a checkpoint, checkpoints joined by commas (training seeds), expert:oracle, expert:fixed, or
+    """a checkpoint, checkpoints joined by commas (training seeds), expert:oracle|fixed|tpsrl, or
     modular:fixed:STEM / modular:oracle:STEM (BC-Modular: STEM_<skill>.pt of train.py --skill); repeatable"""
     split: str = "unseen"
     """unseen, seen, or both (side by side, as in the paper)"""
@@ -129,8 +130,8 @@ def parse_method(spec, cfg):
     overrides = {"max_steps": cfg.max_steps} if cfg.max_steps else {}
     if spec.startswith("expert:"):
         plan = spec.split(":", 1)[1]
-        if plan not in ("oracle", "fixed"):
-            raise ValueError(f"unknown expert plan in {spec!r}: expected expert:oracle or expert:fixed")
+        if plan not in expert.PLANS:
+            raise ValueError(f"unknown expert plan in {spec!r}: expected expert:oracle, expert:fixed or expert:tpsrl")
         kwargs = dict(overrides, **({"depth_size": cfg.depth_size} if cfg.depth_size else {}))
         return {"name": spec, "spec": spec, "variant": f"expert_{plan}",
                 "members": [(spec, dataclasses.asdict(env.EnvConfig(**kwargs)))]}

@@ -14,7 +14,9 @@ it can label any state a learner reaches (DAgger: `collect.py --policy CKPT`).
 Navigation follows a distance field to its goal on the layout's occupancy grid (a cache that
 depends only on the layout, the goal and which receptacles stand open); pick, place and opening
 move the arm toward a damped-least-squares IK solution found from the measured joints every step.
-With plan="fixed" it is the M3 baseline: navigate, pick, navigate, place, never opening anything.
+With plan="fixed" it is the M3 baseline: navigate, pick, navigate, place, never opening anything;
+plan="tpsrl" is that plan with the base held still while the arm works (TP-SRL, Szot et al. 2021,
+whose manipulation skills do not move the base; ours nudge it to keep facing the point).
 
     python expert.py --episodes 40 --split unseen               # success by difficulty
     python expert.py --episodes 40 --split unseen --plan fixed
@@ -67,6 +69,7 @@ DROP_XY = 0.08              # ... or with the object this near the goal horizont
 LIFT = 0.03                 # m: a held object is lifted (and drawn in) until this much air is under it
 DONE_DIST = 0.12            # m: the target this near the goal and not held: the place is done
 DOWN = np.array([0.0, 0.0, -1.0])
+PLANS = ("oracle", "fixed", "tpsrl")
 
 
 @dataclasses.dataclass
@@ -76,7 +79,8 @@ class Args:
     split: str = "unseen"
     """episode set: train, seen or unseen"""
     plan: str = "oracle"
-    """oracle (opens receptacles when needed) or fixed (navigate, pick, navigate, place)"""
+    """oracle (opens receptacles when needed), fixed (navigate, pick, navigate, place) or tpsrl
+    (fixed, the base still while the arm works)"""
     seed: int = 0
     """seed of the episode set and of the env resets"""
     noise: float = 0.0
@@ -93,8 +97,8 @@ class Expert:
     """State-feedback skills on the privileged state; act() returns the clean action and its skill id."""
 
     def __init__(self, env_, plan="oracle", seed=0, noise=0.0, nav_noise=0.0):
-        if plan not in ("oracle", "fixed"):
-            raise ValueError(f"plan must be 'oracle' or 'fixed', got {plan!r}")
+        if plan not in PLANS:
+            raise ValueError(f"plan must be one of {PLANS}, got {plan!r}")
         self.env, self.plan = env_, plan
         self.noise, self.nav_noise = float(noise), float(nav_noise)
         self.rng = np.random.default_rng(seed)   # the DART noise's, never the label's
@@ -113,6 +117,8 @@ class Expert:
         self.p, self.m, self.ids = e.privileged(), e.model, e.ids
         self.fur = {f.name: f for f in self.p["layout"].furniture}
         skill, action = self._decide()
+        if self.plan == "tpsrl" and skill != "navigate":
+            action = np.r_[action[:7], 0.0, 0.0, action[9]]   # TP-SRL: the base stands while the arm works
         self.skill = SKILL_IDS[skill]
         self.compute_time += time.perf_counter() - t0
         return np.asarray(action, np.float32), self.skill
@@ -689,8 +695,8 @@ def main():
         else:
             p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default, help=docs.get(f.name))
     args = Args(**vars(p.parse_args()))
-    if args.split not in env.SPLITS or args.plan not in ("oracle", "fixed"):
-        p.error(f"--split must be one of {tuple(env.SPLITS)} and --plan oracle or fixed, got {args.split!r}, {args.plan!r}")
+    if args.split not in env.SPLITS or args.plan not in PLANS:
+        p.error(f"--split must be one of {tuple(env.SPLITS)} and --plan one of {PLANS}, got {args.split!r}, {args.plan!r}")
     run(args)
 
 

@@ -206,6 +206,16 @@ def test_fixed_plan_never_opens_and_fails_a_closed_receptacle():
     assert set(skills) <= {env.SKILL_IDS[s] for s in ("navigate", "pick", "place")}
 
 
+def test_tpsrl_plan_holds_the_base_still_while_the_arm_works():
+    """expert:tpsrl is the fixed plan whose manipulation skills leave the base still (TP-SRL)."""
+    ep = next(ep for ep in env.make_episodes("train", 12) if ep.kind == "easy")
+    info, actions, skills = _run_expert(ep, plan="tpsrl")
+    manip = np.array(skills) != env.SKILL_IDS["navigate"]
+    assert manip.any() and not np.any(actions[manip][:, env.BASE])
+    assert np.any(actions[~manip][:, env.BASE])
+    assert set(skills) <= {env.SKILL_IDS[s] for s in ("navigate", "pick", "place")}
+
+
 def _oracle_on_first_easy():
     """(env, first obs, reset oracle expert) on the first easy train episode."""
     e = env.RearrangeEnv(depth_size=8)
