@@ -260,7 +260,7 @@ class ModularBatch:
     def _done(self, i):
         """Has env i's current skill met its planner condition?"""
         probe, (skill, arg) = self.probes[i], self.todo[i][0]
-        probe.act()                                       # refreshes probe.p from the simulator
+        probe.observe()
         p, ep = probe.p, probe.p["episode"]
         obj = p["objects"][ep.target]
         if skill == "navigate" and arg == "pick":

@@ -113,15 +113,19 @@ class Expert:
     def act(self, obs=None, reward=0.0):
         """(action float32 (10,), skill id) for the current state; obs is unused: the expert is privileged."""
         t0 = time.perf_counter()
-        e = self.env
-        self.p, self.m, self.ids = e.privileged(), e.model, e.ids
-        self.fur = {f.name: f for f in self.p["layout"].furniture}
+        self.observe()
         skill, action = self._decide()
         if self.plan == "tpsrl" and skill != "navigate":
             action = np.r_[action[:7], 0.0, 0.0, action[9]]   # TP-SRL: the base stands while the arm works
         self.skill = SKILL_IDS[skill]
         self.compute_time += time.perf_counter() - t0
         return np.asarray(action, np.float32), self.skill
+
+    def observe(self):
+        """Read the simulator's privileged state: what every decision and geometry test below uses."""
+        e = self.env
+        self.p, self.m, self.ids = e.privileged(), e.model, e.ids
+        self.fur = {f.name: f for f in self.p["layout"].furniture}
 
     def noisy(self, action):
         """DART (Laskey et al. 2017): the env executes a perturbed action, the demo records the clean one.

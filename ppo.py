@@ -29,6 +29,7 @@ import torch.nn.functional as F
 
 import env
 import model
+from train import save_atomic   # atomic writes, as train.py checkpoints
 
 
 @dataclass
@@ -111,13 +112,6 @@ def checkpoint(net, opt, margs, cfg, env_config, steps, resumable):
              "config": dict(asdict(cfg), variant="mono"), "env_config": env_config, "rtg_max": 0.0,
              "iter_num": steps, "n_demos": 0}
     return dict(actor, full=net.state_dict(), optimizer=opt.state_dict()) if resumable else actor
-
-
-def save_atomic(obj, path):
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.tmp{os.getpid()}"
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
 
 
 # --- training ---
