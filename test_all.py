@@ -1280,6 +1280,8 @@ def test_segments_cut_nav_pick_and_nav_place(tmp_path):
     assert pieces[1]["rtg"][0] == pytest.approx(ep["reward"][20:40].sum(), rel=1e-5)
     with pytest.raises(ValueError, match="nav-open"):
         train.cut_segments([ep], ["nav-open"])
+    # the same budget as whole demos: pieces a third as long, three times as many per epoch
+    assert train.same_steps_per_epoch(80, [60, 60], [20, 20]) == 240
 
 
 def test_difficulty_filter_keeps_the_list_order():

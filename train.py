@@ -97,7 +97,8 @@ class TrainConfig:
     max_demos: int = 0
     """use only the first N demos in file order (0: all)"""
     segments: str = ""
-    """train on pieces of the demos only, e.g. nav-pick,nav-place (Sec. 5.5); empty: whole demos"""
+    """train on pieces of the demos only, e.g. nav-pick,nav-place (Sec. 5.5), an epoch taking as many
+    pieces as hold demos_per_epoch demos' steps (the same budget); empty: whole demos"""
     skill: str = ""
     """BC-Modular (Sec. 5.2): train a policy for this skill alone (no_skill variant), on the runs of
     steps the demos label with it, an epoch drawing the runs of demos_per_epoch demos: the five
@@ -190,6 +191,13 @@ def cut_segments(demos, names):
                 start -= 1
             pieces.append(add_inputs({k: ep[k][start:idx[-1] + 1] for k in collect.STEP_ARRAYS}))
     return pieces
+
+
+def same_steps_per_epoch(demos_per_epoch, whole, pieces):
+    """Pieces per epoch that hold as many steps as demos_per_epoch whole demos (lengths `whole`), so
+    that training on pieces gets the same iterations as on whole demos: 80 nav-pick and nav-place
+    pieces hold a third of 80 demos' steps, and the comparison would be with a third of the training."""
+    return max(1, round(demos_per_epoch * np.mean(whole) / np.mean(pieces)))
 
 
 def skill_runs(demos, skill):
@@ -365,12 +373,15 @@ def train(cfg):
     n_demos = len(demos)  # the dataset size (Fig. 3c), also when the demos are cut into pieces
     if cfg.skill and cfg.variant != "no_skill":
         raise ValueError(f"--skill trains one BC-Modular skill policy: use --variant no_skill, not {cfg.variant}")
+    per_epoch = 0  # an epoch: demos_per_epoch demos
     if cfg.segments:
+        whole = [len(d["action"]) for d in demos]
         demos = cut_segments(demos, cfg.segments.split(","))
+        per_epoch = same_steps_per_epoch(cfg.demos_per_epoch, whole, [len(d["action"]) for d in demos])
     if cfg.skill:
         demos = skill_runs(demos, cfg.skill)
-    # with --skill an epoch takes the runs of demos_per_epoch demos: the skill's share of the budget
-    per_epoch = round(cfg.demos_per_epoch * len(demos) / n_demos) if cfg.skill else 0
+        # an epoch takes the runs of demos_per_epoch demos: the skill's share of the budget
+        per_epoch = round(cfg.demos_per_epoch * len(demos) / n_demos)
     lengths = [len(d["action"]) for d in demos]
     pieces = cfg.segments or (cfg.skill and "runs of " + cfg.skill)
     log(f"loaded {len(demos)} {'pieces (' + pieces + ')' if pieces else 'demos'}, {sum(lengths)} steps, "
