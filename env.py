@@ -960,7 +960,6 @@ def main():
     p.add_argument("--view", action="store_true", help="open mujoco.viewer on a layout (needs a display)")
     p.add_argument("--xml", metavar="PATH", help="write the layout's MJCF to PATH")
     p.add_argument("--layout", type=int, default=0, help="layout id for --view / --xml")
-    p.add_argument("--sizes", default="", help="comma-separated depth sizes to bench, e.g. 32,64,128")
     docs = field_docs(EnvConfig)
     for f in dataclasses.fields(EnvConfig):
         if isinstance(f.default, bool):        # no type=bool: --perturb / --no-perturb
@@ -975,8 +974,7 @@ def main():
             fh.write(build_spec(make_layout(args.layout)).to_xml())
         print(f"wrote {args.xml}")
     if args.bench:
-        for size in [int(s) for s in args.sizes.split(",") if s] or [config.depth_size]:
-            bench(dataclasses.replace(config, depth_size=size))
+        bench(config)                           # another camera size: --bench --depth-size 64
     if args.view:
         import mujoco.viewer
         e = RearrangeEnv(**dataclasses.asdict(config))
