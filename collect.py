@@ -176,8 +176,8 @@ def applicable_events(e, x):
     p = e.privileged()
     over = x._support(p["ee"])
     cabinet = over.startswith("drawer")                  # the drawers are stacked: over one is near both
-    # not the goal's receptacle while the target is carried: every goal-closed demo already shows
-    # that detour (carry the target to it, put it down beside it, open, pick again)
+    # not the goal's receptacle while the target is carried: it cannot be opened with the object in
+    # the cup, and the expert would have to put it down wherever it stands
     carried = p["held"] == p["target"]
     shut = [k for k, r in enumerate(env.RECEPTACLES)
             if p["open_fraction"][k] > SHUT_OPEN and np.linalg.norm(p["ee"] - p["handles"][k]) > SHUT_CLEAR

@@ -44,14 +44,13 @@ FIELD_POOL = 2              # the distance field's cells are 2 x 2 occupancy cel
 LOOKAHEAD = 4               # field cells (0.4 m) along the descent of the distance field to aim at
 ARRIVE = 0.05               # m: navigation has reached its pose's position; then it turns or settles
 STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to the front face, m
-REACH = {"surface": 0.6, "drawer": 0.58, "fridge": 0.6, "floor": 0.45}   # base centre to the object or goal, m
+REACH = {"surface": 0.6, "drawer": 0.58, "fridge": 0.6}       # base centre to the object or goal, m
 WORK_YAW, WORK_DIST = 0.2, 0.1      # rad, m: a pick or place starts this near facing its point at reach
 OPEN_XY, OPEN_YAW = 0.08, 0.08      # m, rad: an opening starts this near its pose
 NEED_OPEN = 0.75            # a receptacle opened less than this fraction must be opened (the expert
                             # opens drawers to DRAWER_DONE and the door to DOOR_DONE)
 CARRY_OPEN = 0.4            # ... but with the target in the cup only below this (it must be put down
                             # to open it, so a door nudged a little shut is placed through)
-CARRIED_NEAR = 1.0          # m: a target this near a shut goal receptacle's opening pose was carried there
 DRAWER_DONE = 0.97          # fraction at which the drawer pull lets go
 DOOR_DONE = 1.5             # rad at which the door swing lets go (range 1.75; the arm's reach ends ~1.58)
 DOOR_TARGET = 1.6           # rad the swing's aim never passes
@@ -160,15 +159,11 @@ class Expert:
             return "place", self._hold(grip=-1.0)
         goal_closed = self.plan == "oracle" and ep.goal_receptacle and self._closed(ep.goal_receptacle - 1)
         if p["held"] == k:
-            # the goal's receptacle is shut: carry the target to it, put it down there, open, pick
-            # again. Opening it before the pick would hang on knowing at reset that the goal lies in a
-            # closed receptacle, which the goal's coordinates do not tell (the fridge shelf is as high
-            # as a table) and a policy that has not yet seen the goal cannot imitate (EXPERIMENTS.md
-            # R33); at the receptacle its depth shows it shut. The cup cannot take a handle while full.
+            # the goal's receptacle shut: it cannot be opened with the object in the cup, so put it
+            # down, open, pick again (collect.py's events never shut it while the target is carried)
             if goal_closed and p["open_fraction"][ep.goal_receptacle - 1] < CARRY_OPEN:
-                goal, place = self._put_down_point(ep.goal_receptacle - 1), "floor"
-            else:
-                goal, place = np.asarray(p["goal"]), ep.goal_place
+                return "place", self._hold(grip=-1.0)
+            goal, place = np.asarray(p["goal"]), ep.goal_place
             if self._at_work(goal, place):
                 return "place", self._place_step(goal, place)
             if not self._folded():
@@ -182,14 +177,14 @@ class Expert:
         if np.linalg.norm(obj - p["goal"]) < DONE_DIST:          # placed: clear the arm
             return "place", self._stow()
         r = p["obj_receptacle"] - 1
-        if goal_closed and self._carried_to(obj, ep.goal_receptacle - 1):
+        if goal_closed:
             sub = ep.goal_receptacle - 1
         elif self.plan == "oracle" and r >= 0 and self._closed(r):
             sub = r
         else:
             sub = None
         if sub is not None:                                       # open a receptacle
-            pose = self._open_pose(sub)
+            pose = self.p["poses"]["fridge_door" if env.RECEPTACLES[sub] == "fridge" else "cabinet"]
             if self._at_pose(pose):
                 return self._open_skill(sub), self._grab_handle(sub)
             if not self._folded():
@@ -204,32 +199,6 @@ class Expert:
 
     def _closed(self, r):
         return self.p["open_fraction"][r] < NEED_OPEN
-
-    def _open_pose(self, r):
-        """Base pose from which receptacle r is opened."""
-        return self.p["poses"]["fridge_door" if env.RECEPTACLES[r] == "fridge" else "cabinet"]
-
-    def _put_down_point(self, r):
-        """Where the target is put down to open receptacle r: on the floor beside the opening pose,
-        out of the door's swing and the drawer's path, on the first free side (a function of the
-        layout alone)."""
-        x, y, yaw = self._open_pose(r)
-        f = self._furniture("fridge" if env.RECEPTACLES[r] == "fridge" else "cabinet")
-        n, lat, face = self._frame(f)
-        hinge = face - lat * f.size[1] / 2
-        grid = env.occupancy_grid(self.p["layout"], inflate=0.1)
-        res = self.p["grid_res"]
-        for d in ((-np.sin(yaw), np.cos(yaw)), (np.sin(yaw), -np.cos(yaw)), (-np.cos(yaw), -np.sin(yaw))):
-            pt = np.array([x, y]) + REACH["floor"] * np.array(d)
-            i, j = int(pt[0] / res), int(pt[1] / res)
-            free = 0 <= i < grid.shape[0] and 0 <= j < grid.shape[1] and not grid[i, j]
-            if free and (r < 2 or np.linalg.norm(pt - hinge) > f.size[1] + 0.15):
-                return np.array([*pt, env.OBJ_HALF])
-        return np.array([*pt, env.OBJ_HALF])
-
-    def _carried_to(self, obj, r):
-        """The target lies by receptacle r's opening pose: put down there to open it."""
-        return np.linalg.norm(np.asarray(obj[:2]) - self._open_pose(r)[:2]) < CARRIED_NEAR
 
     def _open_skill(self, r):
         return "open_fridge" if env.RECEPTACLES[r] == "fridge" else "open_drawer"
@@ -272,7 +241,7 @@ class Expert:
         return self.fur["cabinet" if place.startswith("drawer") else place]
 
     def _kind(self, place):
-        return "drawer" if place.startswith("drawer") else "floor" if place == "floor" else self._furniture(place).kind
+        return "drawer" if place.startswith("drawer") else "surface" if place == "floor" else self._furniture(place).kind
 
     def _reach(self, place):
         return REACH[self._kind(place)]
@@ -282,7 +251,7 @@ class Expert:
         if place == "floor":                                     # no furniture: come at it from here
             xy = np.asarray(self.p["base"][:2])
             u = (point[:2] - xy) / max(np.linalg.norm(point[:2] - xy), 1e-6)
-            return (*(point[:2] - u * REACH["floor"]), np.arctan2(u[1], u[0]))
+            return (*(point[:2] - u * REACH["surface"]), np.arctan2(u[1], u[0]))
         f = self._furniture(place)
         n, lat, face = self._frame(f)
         kind = self._kind(place)
