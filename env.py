@@ -30,10 +30,14 @@ RECEPTACLES = ("drawer_0", "drawer_1", "fridge")   # auxiliary label i = RECEPTA
 DIFFICULTIES = ("easy", "hard", "very_hard")
 KINDS = ("easy", "object_closed", "goal_closed", "very_hard")   # hard = object_closed or goal_closed
 STATE_LAYOUT = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3),
-                ("goal", 3), ("obj_start_polar", 3), ("goal_polar", 3))
-STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 30
-# joint_target is not in the paper's observation: the expert's arm label depends on the servo
-# set-point, which leads the joints by ~0.1 rad (EXPERIMENTS.md, M4)
+                ("goal", 3), ("obj_start_polar", 3), ("goal_polar", 3), ("receptacle_open", 2))
+STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 32
+# joint_target and receptacle_open are not in the paper's observation. The expert's arm label
+# depends on the servo set-point, which leads the joints by ~0.1 rad (EXPERIMENTS.md, M4). Its
+# first choice in a goal-closed episode, open the goal's receptacle before the pick, depends on
+# that receptacle being shut, which a 32 x 32 depth image cannot show from across the room and a
+# 15-step context cannot remember (EXPERIMENTS.md, R33, R39): a learner imitates only what it
+# could compute from what it sees (Learning by Cheating's caveat).
 ACTION_DIM = 10                                      # 7 arm deltas, 2 base velocities, 1 grip
 ARM, BASE, GRIP = slice(0, 7), slice(7, 9), 9        # action layout
 GRIP_VALUES = (-1.0, 0.0, 1.0)                       # release, keep, grasp = grip classes 0, 1, 2
@@ -490,6 +494,7 @@ class RearrangeEnv:
     | goal            | (3,)      | goal minus end effector, base frame, m                      | room      |
     | obj_start_polar | (3,)      | target start from the base: distance m, sin and cos of its bearing | room, [-1, 1] |
     | goal_polar      | (3,)      | goal from the base: distance m, sin and cos of its bearing  | room, [-1, 1] |
+    | receptacle_open | (2,)      | open fraction of the receptacle holding the target, of the one holding the goal; 1 on a surface | [0, 1] |
 
     Action (float32, shape (10,); values in range are clipped to the bounds):
 
@@ -845,7 +850,14 @@ class RearrangeEnv:
             "goal": rel[:, 2].astype(np.float32),
             "obj_start_polar": self._polar(self._obj_start, xy, yaw).astype(np.float32),
             "goal_polar": self._polar(self._goal, xy, yaw).astype(np.float32),
+            "receptacle_open": self._receptacle_open(),
         }
+
+    def _receptacle_open(self):
+        """(2,) how open the receptacles are that the expert's choices rest on (see STATE_LAYOUT):
+        the one the target is in (until it is picked) and the goal's; 1 for an open surface."""
+        frac = np.concatenate([[1.0], self.open_fraction()])     # index 0: no receptacle
+        return frac[[self._in_receptacle, self.episode.goal_receptacle]].astype(np.float32)
 
     def open_fraction(self):
         """(3,) how open each receptacle is, in [0, 1] (RECEPTACLES order)."""
