@@ -9,7 +9,9 @@ or BC-Modular's skill policies under a planner, `modular:fixed:STEM` and `modula
 from a fixed list, env.make_episodes(split, n, seed=0), and each rollout's reset seed is a function
 of (split, episode, rollout seed); a worker runs consecutive episodes of the list in lock-step
 batches (--batch), one network call per step for all of them.
-So numbers are comparable across runs and do not depend on the number of workers.
+So numbers are comparable across runs and do not depend on the number of workers. The batched
+network call is not bitwise the same across batch sizes, so keep --episodes a multiple of --batch
+when one run's episodes must match another's rollout for rollout (EXPERIMENTS.md R46).
 
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --policy expert:fixed \\
                        --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
