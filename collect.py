@@ -15,8 +15,8 @@ a learner states off the expert's path (EXPERIMENTS.md records what each did):
   (0: the policy drives all). Every episode is kept, solved or not; train on the union with the
   expert's demos (train.py --data DIR,DIR).
 
-    python collect.py --episodes 1000 --out data/demos --workers 2 --seed 0
-    python collect.py --episodes 1000 --out data/dart --noise 0.1 --nav-noise 0.2 --events 2
+    python collect.py --out data/demos                    # the recipe: 1,000 demos, DART noise, events
+    python collect.py --out data/priv --obs privileged    # the same demos with receptacle_open in the state
     python collect.py --episodes 300 --out data/dagger --seed 1 --policy ckpt/st.pt --beta 0.5
     python collect.py --stats data/demos
 
@@ -26,10 +26,13 @@ bytes never depend on the worker count. Without `--keep-failed` (or `--policy`) 
 in order and the first N successes are kept. Files are written to a temporary name and renamed,
 so rerunning the same command after a kill resumes where it stopped.
 
-File format 2 (readable with `numpy.load(path, allow_pickle=False)`), T steps:
-    depth uint8 (T, H, W), state float32 (T, 30), action float32 (T, 10) clean expert action,
+File format 3 (readable with `numpy.load(path, allow_pickle=False)`), T steps:
+    depth uint8 (T, H, W), state float32 (T, D) in meta.json's state_layout (D = 30 with
+    obs="paper", 32 with "privileged"), action float32 (T, 10) clean expert action,
     skill int8 (T,), receptacle int8 (T,) auxiliary label of the observed state,
-    reward float32 (T,) reward received after the action;
+    receptacle_open float32 (T, 2) how open the target's and the goal's receptacles are (a
+    training target, env.RearrangeEnv._receptacle_open), reward float32 (T,) reward received
+    after the action;
     events int64 (3,) perturbation events of the episode: shut, push, drop (EVENTS);
     scalars: success bool, layout int, difficulty str, seed int (reset seed), index int.
 """
@@ -48,11 +51,9 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
-import torch
 
 import env
 import expert
-import model
 
 
 @dataclass
@@ -65,12 +66,15 @@ class Config:
     """worker processes, each with its own simulator"""
     seed: int = 0
     """dataset seed: selects the train episodes and the reset seeds"""
-    noise: float = 0.0
-    """DART noise scale injected into the executed actions (the stored action stays clean)"""
-    nav_noise: float = 0.0
-    """DART drift of the executed turn rate while navigating (expert.Expert's nav_noise)"""
-    events: float = 0.0
-    """expected perturbation events per 1,000 steps (shut an open receptacle, push the base, drop the held target)"""
+    obs: str = "paper"
+    """observation mode (env.OBS_MODES): paper, the recipe; privileged adds receptacle_open to the state"""
+    noise: float = 0.1
+    """DART noise scale injected into the executed actions (the stored action stays clean; 0: none)"""
+    nav_noise: float = 0.2
+    """DART drift of the executed turn rate while navigating (expert.Expert's nav_noise; 0: none)"""
+    events: float = 3.0
+    """expected perturbation events per 1,000 steps (shut an open receptacle in view, push the base,
+    drop the held target; 0: none); 3 solved more than 1 (EXPERIMENTS.md R47)"""
     policy: str = ""
     """DAgger: this train.py checkpoint drives, the expert labels every step; keeps every episode, solved or not"""
     beta: float = 0.0
@@ -89,7 +93,7 @@ class Config:
     """print statistics of the dataset in this directory and exit"""
 
 
-FORMAT_VERSION = 2   # 2 adds the events array
+FORMAT_VERSION = 3   # 2 added the events array, 3 the receptacle_open target
 EPISODE_FILE = re.compile(r"^ep_(\d{6})\.npz$")
 TEMP_FILE = re.compile(r"^ep_(\d{6})\.npz\.\d+\.tmp$")   # ep_k.npz.<pid>.tmp
 # meta.json entries that must agree before new episodes are added to an existing directory
@@ -109,15 +113,16 @@ def reset_seed(seed, k):
 # --- validation ---
 
 EVENTS = ("shut", "push", "drop")
-STEP_ARRAYS = {"depth": np.uint8, "state": np.float32, "action": np.float32,
-               "skill": np.int8, "receptacle": np.int8, "reward": np.float32}
-TRAILING_SHAPE = {"state": (env.STATE_DIM,), "action": (env.ACTION_DIM,),
-                  "skill": (), "receptacle": (), "reward": ()}
+STEP_ARRAYS = {"depth": np.uint8, "state": np.float32, "action": np.float32, "skill": np.int8,
+               "receptacle": np.int8, "receptacle_open": np.float32, "reward": np.float32}
+TRAILING_SHAPE = {"action": (env.ACTION_DIM,), "skill": (), "receptacle": (), "receptacle_open": (2,),
+                  "reward": ()}
 SCALARS = {"success": "b", "layout": "iu", "difficulty": "U", "seed": "iu", "index": "iu"}
 
 
-def load_episode(path):
-    """Load and validate one demonstration file -> dict of numpy arrays; ValueError naming the file."""
+def load_episode(path, state_dim):
+    """Load and validate one demonstration file whose state has state_dim numbers per step (meta.json's
+    state_layout) -> dict of numpy arrays; ValueError naming the file."""
     try:
         with np.load(path, allow_pickle=False) as f:
             data = {k: f[k] for k in f.files}
@@ -134,7 +139,7 @@ def load_episode(path):
         a = data[key]
         if a.dtype != dtype:
             raise ValueError(f"{path}: {key} has dtype {a.dtype}, expected {np.dtype(dtype)}")
-        want = (T, *data["depth"].shape[1:]) if key == "depth" else (T, *TRAILING_SHAPE[key])
+        want = {"depth": (T, *data["depth"].shape[1:]), "state": (T, state_dim)}.get(key) or (T, *TRAILING_SHAPE[key])
         if a.shape != want or (key == "depth" and a.ndim != 3):
             raise ValueError(f"{path}: {key} has shape {a.shape}, expected {want} (T={T}, depth (T, H, W))")
         if a.dtype.kind == "f" and not np.isfinite(a).all():
@@ -171,10 +176,12 @@ DROP_CLEAR = env.ROBOT_RADIUS + 0.05   # m: the held target is dropped only this
 
 def applicable_events(e, x):
     """The events that apply to the current state -> {kind: its choices} (for shut: the receptacles).
-    x (expert.Expert) has acted on this state; its _support names the place under a point, so that a
-    receptacle is not shut on the arm and the target is dropped above a surface or a receptacle."""
+    x (expert.Expert) has acted on this state; its support() names the place under a point, so that a
+    receptacle is not shut on the arm and the target is dropped above a surface or a receptacle. A
+    receptacle is shut only where the head camera sees its handle: the expert then goes back to open
+    it, and a learner can imitate that only if it could see why (env.py's rule)."""
     p = e.privileged()
-    over = x._support(p["ee"])
+    over = x.support(p["ee"])
     cabinet = over.startswith("drawer")                  # the drawers are stacked: over one is near both
     # not the goal's receptacle while the target is carried: it cannot be opened with the object in
     # the cup, and the expert would have to put it down wherever it stands
@@ -182,10 +189,10 @@ def applicable_events(e, x):
     shut = [k for k, r in enumerate(env.RECEPTACLES)
             if p["open_fraction"][k] > SHUT_OPEN and np.linalg.norm(p["ee"] - p["handles"][k]) > SHUT_CLEAR
             and over != r and not (cabinet and r.startswith("drawer"))
-            and not (carried and k == p["goal_receptacle"] - 1)]
+            and not (carried and k == p["goal_receptacle"] - 1) and e.in_view(p["handles"][k])]
     push = p["handle"] < 0    # a base pushed while the cup holds a handle tears at the weld: a collision
     obj = p["objects"][p["target"]]
-    under = x._support(obj)   # a drawer's region reaches out over its travel: it must stand open
+    under = x.support(obj)   # a drawer's region reaches out over its travel: it must stand open
     drop = (p["held"] == p["target"] and under != "floor" and np.hypot(*(obj[:2] - p["base"][:2])) > DROP_CLEAR
             and (not under.startswith("drawer") or p["open_fraction"][env.RECEPTACLES.index(under)] > SHUT_OPEN))
     return {kind: choices for kind, choices in zip(EVENTS, (shut, [None] * bool(push), [None] * bool(drop))) if choices}
@@ -231,10 +238,11 @@ def record_episode(e, episode, seed, noise=0.0, nav_noise=0.0, events=0.0, polic
     while not done:
         action, skill = x.act(obs)
         steps["depth"].append(env.depth_to_uint8(obs["depth"]))
-        steps["state"].append(env.state_vector(obs))
+        steps["state"].append(env.state_vector(obs, e.state_layout))
         steps["action"].append(action)
         steps["skill"].append(skill)
-        steps["receptacle"].append(info["receptacle"])   # label of the state this obs shows
+        steps["receptacle"].append(info["receptacle"])   # labels of the state this obs shows
+        steps["receptacle_open"].append(info["receptacle_open"])
         executed = x.noisy(action)                        # every step, whoever drives: the noise runs on
         if policy is not None:
             learned, _ = policy.act(obs, reward)          # every step: its context is the whole episode
@@ -264,6 +272,7 @@ def collect_job(job):
         _worker_env.clear()
         _worker_env[key] = env.RearrangeEnv(**env_kwargs)
     if cfg.policy and cfg.policy not in _worker_policy:
+        import torch, model                             # DAgger only: a later stage, imported here
         torch.set_num_threads(1)                        # one core per worker process
         _worker_policy[cfg.policy] = model.load_policy(cfg.policy)
     data = record_episode(_worker_env[key], episode, seed, cfg.noise, cfg.nav_noise, cfg.events,
@@ -277,7 +286,7 @@ def collect_job(job):
 # --- the dataset directory ---
 
 def env_kwargs_of(cfg):
-    kwargs = {}
+    kwargs = {"obs": cfg.obs}
     if cfg.depth_size:
         kwargs["depth_size"] = cfg.depth_size
     if cfg.max_steps:
@@ -289,7 +298,7 @@ def make_meta(cfg, env_kwargs):
     return {
         "format": FORMAT_VERSION,
         "env_config": dataclasses.asdict(env.EnvConfig(**env_kwargs)),
-        "state_layout": [[k, n] for k, n in env.STATE_LAYOUT],
+        "state_layout": [[k, n] for k, n in env.state_layout(cfg.obs)],
         "skills": list(env.SKILLS),
         "receptacles": list(env.RECEPTACLES),
         "difficulties": list(env.DIFFICULTIES),
@@ -340,7 +349,7 @@ def remove_temps(out):
             os.remove(os.path.join(out, name))
 
 
-def scan_dir(out):
+def scan_dir(out, state_dim):
     """Validate every episode file in out -> {k: summary}."""
     have = {}
     for name in sorted(os.listdir(out)):
@@ -350,7 +359,7 @@ def scan_dir(out):
         m = EPISODE_FILE.match(name)
         if not m:
             raise ValueError(f"{path}: foreign .npz in the dataset directory (expected ep_NNNNNN.npz)")
-        data = load_episode(path)
+        data = load_episode(path, state_dim)
         have[int(m.group(1))] = {"success": bool(data["success"]), "index": int(data["index"]),
                                  "seed": int(data["seed"]), "layout": int(data["layout"]),
                                  "difficulty": str(data["difficulty"])}
@@ -384,6 +393,7 @@ def check_policy(path, env_kwargs):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"--policy {path}: checkpoint not found")
     want = dataclasses.asdict(env.EnvConfig(**env_kwargs))
+    import model                                        # DAgger only: a later stage, imported here
     got = model.load_checkpoint(path)["env_config"]
     diff = sorted(k for k in want if got.get(k) != want[k])
     if diff:
@@ -401,6 +411,7 @@ def collect(cfg):
         raise ValueError(f"--events is a rate per 1,000 steps in [0, 1000], got {cfg.events}")
     if not (0 <= cfg.beta <= 1 and cfg.segment >= 1):
         raise ValueError(f"--beta must be in [0, 1] and --segment >= 1, got {cfg.beta} and {cfg.segment}")
+    env.state_layout(cfg.obs)                        # ValueError for an unknown --obs
     if not cfg.policy and (cfg.beta, cfg.segment) != (Config.beta, Config.segment):
         raise ValueError(f"--beta and --segment mix a --policy's actions with the expert's; "
                          f"got --beta {cfg.beta} --segment {cfg.segment} without --policy")
@@ -409,7 +420,7 @@ def collect(cfg):
     os.makedirs(cfg.out, exist_ok=True)
     check_or_write_meta(cfg.out, make_meta(cfg, env_kwargs))
     remove_temps(cfg.out)
-    have = scan_dir(cfg.out)
+    have = scan_dir(cfg.out, sum(n for _, n in env.state_layout(cfg.obs)))
     episode_of = episode_source("train", cfg.seed)
     indices = itertools.count()
     pool = mp.get_context("spawn").Pool(cfg.workers) if cfg.workers > 1 else None
@@ -465,6 +476,11 @@ def collect(cfg):
 def dataset_stats(out):
     """Summary of a dataset directory (every file validated) -> dict."""
     names = sorted(n for n in os.listdir(out) if n.endswith(".npz"))
+    try:
+        with open(os.path.join(out, "meta.json")) as f:
+            state_dim = sum(n for _, n in json.load(f)["state_layout"])
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ValueError(f"{out}/meta.json: missing or unreadable ({err}); is {out!r} written by collect.py?") from err
     skills = np.zeros(len(env.SKILLS), np.int64)
     events = np.zeros(len(EVENTS), np.int64)
     still = inner = 0
@@ -474,7 +490,7 @@ def dataset_stats(out):
         path = os.path.join(out, name)
         if not EPISODE_FILE.match(name):
             raise ValueError(f"{path}: foreign .npz in the dataset directory (expected ep_NNNNNN.npz)")
-        data = load_episode(path)
+        data = load_episode(path, state_dim)
         skills += np.bincount(data["skill"], minlength=len(env.SKILLS))
         by_diff[str(data["difficulty"])][0] += 1
         by_diff[str(data["difficulty"])][1] += bool(data["success"])

@@ -10,8 +10,18 @@ in code with `mujoco.MjSpec` from an integer layout id; depth comes from ray cas
     python env.py --view --layout 3       # interactive viewer (needs a display)
     python env.py --xml scene.xml         # write a layout's MJCF for inspection
 
-Public names used by the other stages: SKILLS, RECEPTACLES, STATE_LAYOUT, state_vector,
-depth_to_uint8, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout.
+Public names used by the other stages: SKILLS, SKILL_IDS, RECEPTACLES, DIFFICULTIES, KINDS,
+OBS_MODES, STATE_LAYOUT, STATE_DIM, state_layout, state_vector, depth_to_uint8, ACTION_DIM, ARM,
+BASE, GRIP, GRIP_VALUES, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout, gym_env.
+
+The paper's rule on privileged information (Sec. 3: "entirely from on-board sensing"; Sec. 4.2:
+the receptacle label is "not used at test time"), stated once here: anything computed from the
+simulator's world state (receptacle joints, object poses after the start, contact forces, the
+expert's plan) may be a training target (info["receptacle"], info["receptacle_open"], the expert's
+skill), never a policy input. The policy's inputs are the robot's own senses (depth, joints, its
+servo set-point, holding, egomotion) and the task's geometric specification (where the target
+started, where the goal is). EnvConfig(obs="paper"), the default, gives exactly those;
+obs="privileged" adds `receptacle_open`, read from the receptacle joints, for one ablation row.
 """
 import argparse
 import ast
@@ -29,15 +39,18 @@ SKILL_IDS = {name: i for i, name in enumerate(SKILLS)}
 RECEPTACLES = ("drawer_0", "drawer_1", "fridge")   # auxiliary label i = RECEPTACLES[i - 1] holds the target; 0 = none
 DIFFICULTIES = ("easy", "hard", "very_hard")
 KINDS = ("easy", "object_closed", "goal_closed", "very_hard")   # hard = object_closed or goal_closed
-STATE_LAYOUT = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3),
-                ("goal", 3), ("obj_start_polar", 3), ("goal_polar", 3), ("receptacle_open", 2))
-STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 32
-# joint_target and receptacle_open are not in the paper's observation. The expert's arm label
-# depends on the servo set-point, which leads the joints by ~0.1 rad (EXPERIMENTS.md, M4). Its
-# first choice in a goal-closed episode, open the goal's receptacle before the pick, depends on
-# that receptacle being shut, which a 32 x 32 depth image cannot show from across the room and a
-# 15-step context cannot remember (EXPERIMENTS.md, R33, R39): a learner imitates only what it
-# could compute from what it sees (Learning by Cheating's caveat).
+OBS_MODES = ("paper", "privileged")
+PAPER_STATE = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3),
+               ("goal", 3), ("obj_start_polar", 3), ("goal_polar", 3))
+STATE_LAYOUTS = {"paper": PAPER_STATE, "privileged": PAPER_STATE + (("receptacle_open", 2),)}
+STATE_LAYOUT = STATE_LAYOUTS["paper"]               # the default mode's, the recipe's
+STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 30
+# joint_target is not in the paper's observation, but it is the robot's own command: the expert's
+# arm label depends on the servo set-point, which leads the joints by ~0.1 rad (EXPERIMENTS.md, M4).
+# receptacle_open (obs="privileged" only) is world state: how open the target's and the goal's
+# receptacles are. The expert opens a shut goal receptacle before the pick, which a 32 x 32 depth
+# image cannot show from across the room nor a 15-step context remember (EXPERIMENTS.md R33, R40);
+# the paper's setting learns it from memory and auxiliary targets instead (model.py).
 ACTION_DIM = 10                                      # 7 arm deltas, 2 base velocities, 1 grip
 ARM, BASE, GRIP = slice(0, 7), slice(7, 9), 9        # action layout
 GRIP_VALUES = (-1.0, 0.0, 1.0)                       # release, keep, grasp = grip classes 0, 1, 2
@@ -46,9 +59,16 @@ EVAL_LAYOUTS = tuple(range(1000, 1020))              # 20 unseen evaluation scen
 SPLITS = {"train": 0, "seen": 1, "unseen": 2}
 
 
-def state_vector(obs):
-    """Concatenate the non-visual observations in STATE_LAYOUT order -> float32 (STATE_DIM,)."""
-    return np.concatenate([np.asarray(obs[k], np.float32).reshape(n) for k, n in STATE_LAYOUT])
+def state_layout(obs_mode):
+    """((name, size), ...) of the state vector in an observation mode (OBS_MODES)."""
+    if obs_mode not in STATE_LAYOUTS:
+        raise ValueError(f"obs mode {obs_mode!r}: expected one of {OBS_MODES}")
+    return STATE_LAYOUTS[obs_mode]
+
+
+def state_vector(obs, layout=STATE_LAYOUT):
+    """Concatenate the non-visual observations in layout order -> float32 (sum of sizes,)."""
+    return np.concatenate([np.asarray(obs[k], np.float32).reshape(n) for k, n in layout])
 
 
 def depth_to_uint8(depth):
@@ -82,6 +102,9 @@ class EnvConfig:
     """steps the target's receptacle must have been open before the perturbation fires"""
     skill_radius: float = 1.5
     """m: Appendix D distance threshold of the ground-truth skill rule"""
+    obs: str = "paper"
+    """paper: on-board sensing and the task's specification only (Sec. 3); privileged: also
+    receptacle_open, read from the simulator (an ablation, never the headline)"""
 
 
 PHYSICS_DT = 1.0 / 120.0          # Appendix B: PD control at 120 Hz ...
@@ -126,7 +149,8 @@ CAB_SIZE = (0.5, 0.8, 0.8)        # cabinet depth, width, height; drawers at DRA
 DRAWER_Z = (0.55, 0.25)           # drawer_0 (top), drawer_1 (bottom): base heights inside the cabinet
 DRAWER_TRAVEL = 0.35
 FRIDGE_SIZE = (0.6, 0.6, 1.5)     # a narrow door: its handle's arc stays within the arm's reach
-FRIDGE_SHELF = 0.75               # height of the shelf top inside the fridge
+FRIDGE_SHELF = 0.65               # height of the shelf top inside the fridge: 10 cm under the lower
+                                  # table, so the goal's height tells a fridge goal from a table's (R38)
 DOOR_RANGE = 1.75                 # rad the fridge door swings open
 
 
@@ -494,7 +518,7 @@ class RearrangeEnv:
     | goal            | (3,)      | goal minus end effector, base frame, m                      | room      |
     | obj_start_polar | (3,)      | target start from the base: distance m, sin and cos of its bearing | room, [-1, 1] |
     | goal_polar      | (3,)      | goal from the base: distance m, sin and cos of its bearing  | room, [-1, 1] |
-    | receptacle_open | (2,)      | open fraction of the receptacle holding the target, of the one holding the goal; 1 on a surface | [0, 1] |
+    | receptacle_open | (2,)      | obs="privileged" only: open fraction of the receptacle holding the target, of the one holding the goal; 1 on a surface | [0, 1] |
 
     Action (float32, shape (10,); values in range are clipped to the bounds):
 
@@ -531,6 +555,7 @@ class RearrangeEnv:
         self.config = EnvConfig(**kwargs)
         if not 8 <= self.config.depth_size <= 512:
             raise ValueError(f"depth_size must be in [8, 512], got {self.config.depth_size}")
+        self.state_layout = state_layout(self.config.obs)    # ValueError for an unknown mode
         self._models = {}            # layout id -> (layout, model, data, ids): compiled once
         self.episode = None
         self._done = True
@@ -838,7 +863,7 @@ class RearrangeEnv:
         ee = d.site_xpos[ids["ee_site"]]
         xy, yaw, rot = self._base_frame()
         rel = rot @ np.stack([ee - [*xy, 0.0], self._obj_start - ee, self._goal - ee], 1)   # (3, 3)
-        return {
+        obs = {
             "depth": depth,
             "joint": d.qpos[ids["arm_q"]].astype(np.float32),
             "joint_target": self._arm_target.astype(np.float32),
@@ -850,14 +875,31 @@ class RearrangeEnv:
             "goal": rel[:, 2].astype(np.float32),
             "obj_start_polar": self._polar(self._obj_start, xy, yaw).astype(np.float32),
             "goal_polar": self._polar(self._goal, xy, yaw).astype(np.float32),
-            "receptacle_open": self._receptacle_open(),
         }
+        if self.config.obs == "privileged":     # world state as an input: the ablation only
+            obs["receptacle_open"] = self._receptacle_open()
+        return obs
 
     def _receptacle_open(self):
-        """(2,) how open the receptacles are that the expert's choices rest on (see STATE_LAYOUT):
-        the one the target is in (until it is picked) and the goal's; 1 for an open surface."""
+        """(2,) how open the receptacles are that the expert's choices rest on: the one the target is
+        in (until it is picked) and the goal's; 1 for an open surface. A training target in both
+        modes (info["receptacle_open"]), an input only with obs="privileged"."""
         frac = np.concatenate([[1.0], self.open_fraction()])     # index 0: no receptacle
         return frac[[self._in_receptacle, self.episode.goal_receptacle]].astype(np.float32)
+
+    def in_view(self, point, margin=0.05):
+        """Does the head camera see a world point: within its field of view and depth range, with
+        nothing in front of it (a ray cast, like the depth image's)? collect.py shuts a receptacle
+        only where the robot can see it happen, so that the expert's reaction can be learned."""
+        m, d, c = self.model, self.data, self.ids["cam"]
+        rel = np.asarray(point, float) - d.cam_xpos[c]
+        v = d.cam_xmat[c].reshape(3, 3).T @ rel                  # camera frame: it looks down -z
+        dist = float(np.linalg.norm(rel))
+        if v[2] >= 0 or max(abs(v[0]), abs(v[1])) > -v[2] or dist > self.config.depth_max:
+            return False                                          # 90 deg field of view: tan 45 = 1
+        gid = np.zeros(1, np.int32)
+        hit = mujoco.mj_ray(m, d, d.cam_xpos[c], rel / dist, self._geomgroup, 1, -1, gid)
+        return hit < 0 or hit > dist - margin
 
     def open_fraction(self):
         """(3,) how open each receptacle is, in [0, 1] (RECEPTACLES order)."""
@@ -927,7 +969,8 @@ class RearrangeEnv:
 
     def _info(self, force, success, failure, terms):
         return {"success": bool(success), "failure": failure, "skill_gt": self.skill_gt(),
-                "receptacle": self.receptacle_label(), "reward_terms": terms, "picked": self._picked,
+                "receptacle": self.receptacle_label(), "receptacle_open": self._receptacle_open(),
+                "reward_terms": terms, "picked": self._picked,
                 "holding": self._held >= 0, "perturbed": self._perturbed, "contact_force": float(force),
                 "steps": self._steps}
 

@@ -8,10 +8,11 @@ or BC-Modular's skill policies under a planner, `modular:fixed:STEM` and `modula
 (BC-Modular (Oracle); STEM_<skill>.pt from train.py --skill). Episodes come
 from a fixed list, env.make_episodes(split, n, seed=0), and each rollout's reset seed is a function
 of (split, episode, rollout seed); a worker runs consecutive episodes of the list in lock-step
-batches (--batch), one network call per step for all of them.
-So numbers are comparable across runs and do not depend on the number of workers. The batched
-network call is not bitwise the same across batch sizes, so keep --episodes a multiple of --batch
-when one run's episodes must match another's rollout for rollout (EXPERIMENTS.md R46).
+batches (--batch), one policy call per step for all of them. A rollout is a function of its
+episode, rollout seed and policy alone, not of --batch or --workers (model.Policy runs the network
+at a fixed batch: a CPU's kernels round differently at other sizes, EXPERIMENTS.md R46), so numbers
+are comparable across runs. Each finished rollout is appended to --out's .jsonl at once; after an
+interruption, the same command with --resume runs only the missing ones and writes the same tables.
 
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --policy expert:fixed \\
                        --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
@@ -90,6 +91,8 @@ class Config:
     """seconds between progress lines"""
     plot: str = ""
     """draw Fig. 3 to this PNG (needs matplotlib); without --policy it redraws from the JSON at --out"""
+    resume: bool = False
+    """continue an interrupted evaluation: run only the episodes missing from --out's .jsonl"""
 
 
 EVAL_SEED = 0        # seed of the evaluation episode lists that every result in the record uses
@@ -252,7 +255,7 @@ class ModularBatch:
             ep, todo = p["episode"], []
             for r in (ep.goal_receptacle, ep.obj_receptacle) if self.plan == "oracle" else ():
                 if r and p["open_fraction"][r - 1] < expert.NEED_OPEN:
-                    todo += [("navigate", r - 1), (probe._open_skill(r - 1), r - 1)]
+                    todo += [("navigate", r - 1), (probe.open_skill(r - 1), r - 1)]
             self.todo.append(todo + [("navigate", "pick"), ("pick", None), ("navigate", "place"), ("place", None)])
             self.steps.append(0)
         for policies in self.policies:
@@ -266,16 +269,16 @@ class ModularBatch:
         p, ep = probe.p, probe.p["episode"]
         obj = p["objects"][ep.target]
         if skill == "navigate" and arg == "pick":
-            return probe._at_work(obj, probe._support(obj))
+            return probe.at_work(obj, probe.support(obj))
         if skill == "navigate" and arg == "place":
-            return probe._at_work(p["goal"], ep.goal_place)
+            return probe.at_work(p["goal"], ep.goal_place)
         if skill == "navigate":
-            return probe._at_pose(p["poses"]["fridge_door" if env.RECEPTACLES[arg] == "fridge" else "cabinet"])
+            return probe.at_pose(p["poses"]["fridge_door" if env.RECEPTACLES[arg] == "fridge" else "cabinet"])
         if skill == "pick":
             return p["held"] == ep.target
         if skill == "place":
             return p["held"] != ep.target
-        return p["open_fraction"][arg] >= expert.NEED_OPEN and p["handle"] < 0 and probe._folded()
+        return p["open_fraction"][arg] >= expert.NEED_OPEN and p["handle"] < 0 and probe.folded()
 
     def act_batch(self, obs, rewards):
         actions, skills = [], []
@@ -352,13 +355,14 @@ def summarize(rollouts):
 
 
 def spread(units, key):
-    """Mean and std of a metric: over training seeds when there are several, else over rollout seeds."""
+    """Mean and std of a metric: over training seeds when there are several, else over rollout seeds;
+    std None for a single run (one checkpoint, one rollout seed), which has no measured spread."""
     if any(u[key] is None for u in units):
         return None
     members = sorted({u["member"] for u in units})
     values = ([np.mean([u[key] for u in units if u["member"] == m]) for m in members] if len(members) > 1
               else [u[key] for u in units])
-    return {"mean": float(np.mean(values)), "std": float(np.std(values))}
+    return {"mean": float(np.mean(values)), "std": float(np.std(values)) if len(values) > 1 else None}
 
 
 def aggregate(method, rollouts):
@@ -379,7 +383,9 @@ def aggregate(method, rollouts):
 # --- tables ---
 
 def fmt(stat):
-    return "-" if stat is None else f"{stat['mean']:.2f} ± {stat['std']:.2f}"
+    if stat is None:
+        return "-"
+    return f"{stat['mean']:.2f}" if stat["std"] is None else f"{stat['mean']:.2f} ± {stat['std']:.2f}"
 
 
 def markdown(results):
@@ -467,8 +473,12 @@ def plot_fig3(results, path):
             ax = axes[row][col]
             for i, s in enumerate(splits):
                 stats = [m["results"][s]["no_perturb"][metric] for m in members]
-                ax.bar(x + (i - (len(splits) - 1) / 2) * width, [st["mean"] for st in stats], width,
-                       yerr=[st["std"] for st in stats], capsize=3, label=s)
+                xs = x + (i - (len(splits) - 1) / 2) * width
+                ax.bar(xs, [st["mean"] for st in stats], width, label=s)
+                spread_ = [(xi, st) for xi, st in zip(xs, stats) if st["std"] is not None]
+                if spread_:                          # an error bar only where seeds measured a spread
+                    ax.errorbar([xi for xi, _ in spread_], [st["mean"] for _, st in spread_],
+                                yerr=[st["std"] for _, st in spread_], fmt="none", capsize=3, color="k")
             ax.set_xticks(x, [str(m["setting"][key] or "whole") for m in members])
             ax.set_ylabel(label)
         axes[0][col].set_title(title)
@@ -536,6 +546,53 @@ def write_videos(cfg, methods, split):
             print(f"video: {folder} ({len(frames)} frames, success {r['success']})", flush=True)
 
 
+# --- results files ---
+
+# the settings that make two runs the same evaluation (--batch, --workers and the rest only set speed)
+IDENTITY = ("policy", "split", "episodes", "seeds", "perturb", "perturb_after", "episode_seed", "difficulty",
+            "max_steps", "depth_size")
+
+
+def rollout_key(r):
+    return r["method"], r["member"], r["seed"], r["split"], r["condition"], r["index"]
+
+
+def append_line(f, obj):
+    """One JSON line in one write, flushed to disk: a kill leaves at most a partial last line."""
+    f.write(json.dumps(obj) + "\n")
+    f.flush()
+    os.fsync(f.fileno())
+
+
+def read_rollout_log(path, identity):
+    """The rollouts an interrupted run of the same evaluation left in its .jsonl (a partial last line
+    dropped, the file rewritten without it) -> list of rollout dicts; [] when there is no file."""
+    if not os.path.exists(path):
+        print(f"--resume: no {path} yet, starting fresh", flush=True)
+        return []
+    with open(path) as f:
+        lines = f.read().split("\n")
+    rows = []
+    for line in lines[:-1]:                         # the part after the last newline is incomplete
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: a corrupt line inside the file ({err}); remove the file to start over") from err
+    if not rows or rows[0].get("evaluation") != json.loads(json.dumps(identity)):
+        raise ValueError(f"{path} records another evaluation ({rows[0].get('evaluation') if rows else 'nothing'}); "
+                         f"this run is {identity}: use another --out, or run without --resume to replace it")
+    write_atomic(path, "".join(line + "\n" for line in lines[:-1]))
+    return rows[1:]
+
+
+def write_atomic(path, text):
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
 # --- main ---
 
 def evaluate(cfg):
@@ -553,29 +610,49 @@ def evaluate(cfg):
     methods = [parse_method(spec, cfg) for spec in cfg.policy]
     conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
     episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty, cfg.episode_seed) for s in splits}
-    # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list: the same
-    # batches (and so the same numbers) whatever the number of workers.
+    # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list, run by any worker.
     chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
     jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
              ref, dict(env_config, perturb=c == "perturb", **({"perturb_after": cfg.perturb_after} if cfg.perturb_after else {})), chunk,
              [reset_seed(s, ep.index, seed, cfg.episode_seed) for ep in chunk])
             for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
             for s in splits for c in conditions for chunk in chunks[s]]
-    n_total = sum(len(job[3]) for job in jobs)
+    # Each finished rollout is appended to --out's .jsonl as it comes; --resume keeps those and
+    # runs the rest. A rollout depends on its episode, seed and policy alone (model.Policy runs the
+    # network at a fixed batch), so a resumed evaluation gives the uninterrupted one's results.
+    log_path = os.path.splitext(cfg.out)[0] + ".jsonl"
+    identity = {k: v for k, v in dataclasses.asdict(cfg).items() if k in IDENTITY}
+    rollouts = read_rollout_log(log_path, identity) if cfg.resume else []
+    finished = {rollout_key(r) for r in rollouts}
+    todo = []
+    for tags, ref, env_config, chunk, seeds in jobs:
+        left = [(ep, seed) for ep, seed in zip(chunk, seeds) if rollout_key(dict(tags, index=ep.index)) not in finished]
+        if left:
+            todo.append((tags, ref, env_config, [ep for ep, _ in left], [seed for _, seed in left]))
+    jobs = todo
+    n_total = len(rollouts) + sum(len(job[3]) for job in jobs)
     print(f"evaluating {len(methods)} methods on {', '.join(splits)}: {n_total} rollouts in batches of "
-          f"{cfg.batch}, {cfg.workers} workers", flush=True)
-    rollouts, t0, last_log = [], time.time(), time.time()
+          f"{cfg.batch}, {cfg.workers} workers" + (f"; {len(rollouts)} already in {log_path}" if rollouts else ""),
+          flush=True)
+    n_before, t0, last_log = len(rollouts), time.time(), time.time()
     pool = mp.get_context("spawn").Pool(cfg.workers, initializer=init_worker) if cfg.workers > 1 else None
     if pool is None:
         init_worker()   # in-process too: torch's default of every core fights a training beside it
+    os.makedirs(os.path.dirname(os.path.abspath(log_path)), exist_ok=True)
     try:
-        for batch in (pool.imap_unordered(rollout_job, jobs) if pool else map(rollout_job, jobs)):
-            rollouts += batch
-            now = time.time()
-            if now - last_log >= cfg.log_every or len(rollouts) == n_total:
-                last_log, minutes = now, (now - t0) / 60
-                print(f"[{len(rollouts):5d}/{n_total}] {len(rollouts) / minutes:6.1f} ep/min, "
-                      f"eta {(n_total - len(rollouts)) * minutes / len(rollouts):.1f} min", flush=True)
+        with open(log_path, "a" if rollouts else "w") as log:
+            if not rollouts:
+                append_line(log, {"evaluation": identity})
+            for batch in (pool.imap_unordered(rollout_job, jobs) if pool else map(rollout_job, jobs)):
+                for r in batch:
+                    append_line(log, r)
+                rollouts += batch
+                now = time.time()
+                if now - last_log >= cfg.log_every or len(rollouts) == n_total:
+                    last_log, minutes = now, (now - t0) / 60
+                    rate = (len(rollouts) - n_before) / minutes
+                    print(f"[{len(rollouts):5d}/{n_total}] {rate:6.1f} ep/min, "
+                          f"eta {(n_total - len(rollouts)) / rate:.1f} min", flush=True)
     finally:
         if pool:
             pool.terminate() if len(rollouts) < n_total else pool.close()
@@ -585,16 +662,14 @@ def evaluate(cfg):
         mine = [r for r in rollouts if r["method"] == i]
         m["results"] = {s: {c: aggregate(m, [r for r in mine if (r["split"], r["condition"]) == (s, c)])
                             for c in conditions} for s in splits}
-    results = {"config": dataclasses.asdict(cfg), "eval_seed": cfg.episode_seed, "splits": splits,
+    config = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "resume"}   # a resumed run: the same file
+    results = {"config": config, "eval_seed": cfg.episode_seed, "splits": splits,
                "versions": {"python": platform.python_version(), "numpy": np.__version__,
                             "mujoco": mujoco.__version__, "torch": torch.__version__},
                "methods": methods, "rollouts": rollouts}
     results["markdown"] = markdown(results)
-    os.makedirs(os.path.dirname(cfg.out) or ".", exist_ok=True)
-    with open(cfg.out, "w") as f:
-        json.dump(results, f, indent=1)
-    with open(os.path.splitext(cfg.out)[0] + ".md", "w") as f:
-        f.write(results["markdown"])
+    write_atomic(cfg.out, json.dumps(results, indent=1))
+    write_atomic(os.path.splitext(cfg.out)[0] + ".md", results["markdown"])
     if cfg.video:
         write_videos(cfg, methods, splits[0])
     return results

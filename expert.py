@@ -154,7 +154,7 @@ class Expert:
         p, ep = self.p, self.p["episode"]
         k = p["target"]
         if p["handle"] >= 0:                                     # holding a handle: open it, then let go
-            return self._open_skill(p["handle"]), self._operate_handle(p["handle"])
+            return self.open_skill(p["handle"]), self._operate_handle(p["handle"])
         if p["held"] >= 0 and p["held"] != k:                    # a distractor in the cup: put it down
             return "place", self._hold(grip=-1.0)
         goal_closed = self.plan == "oracle" and ep.goal_receptacle and self._closed(ep.goal_receptacle - 1)
@@ -164,9 +164,9 @@ class Expert:
             if goal_closed and p["open_fraction"][ep.goal_receptacle - 1] < CARRY_OPEN:
                 return "place", self._hold(grip=-1.0)
             goal, place = np.asarray(p["goal"]), ep.goal_place
-            if self._at_work(goal, place):
+            if self.at_work(goal, place):
                 return "place", self._place_step(goal, place)
-            if not self._folded():
+            if not self.folded():
                 return "pick", self._stow()
             return "navigate", self._navigate(self._work_pose(place, goal), face=(goal, self._reach(place)))
         obj = p["objects"][k]
@@ -185,22 +185,22 @@ class Expert:
             sub = None
         if sub is not None:                                       # open a receptacle
             pose = self.p["poses"]["fridge_door" if env.RECEPTACLES[sub] == "fridge" else "cabinet"]
-            if self._at_pose(pose):
-                return self._open_skill(sub), self._grab_handle(sub)
-            if not self._folded():
+            if self.at_pose(pose):
+                return self.open_skill(sub), self._grab_handle(sub)
+            if not self.folded():
                 return self._stow_skill(), self._stow()
             return "navigate", self._navigate(pose)
-        place = self._support(obj)
-        if self._at_work(obj, place):
+        place = self.support(obj)
+        if self.at_work(obj, place):
             return "pick", self._pick_step(obj, place)
-        if not self._folded():
+        if not self.folded():
             return self._stow_skill(), self._stow()
         return "navigate", self._navigate(self._work_pose(place, obj), face=(obj, self._reach(place)))
 
     def _closed(self, r):
         return self.p["open_fraction"][r] < NEED_OPEN
 
-    def _open_skill(self, r):
+    def open_skill(self, r):
         return "open_fridge" if env.RECEPTACLES[r] == "fridge" else "open_drawer"
 
     def _stow_skill(self):
@@ -208,9 +208,9 @@ class Expert:
         p = self.p
         near = [r for r in range(len(env.RECEPTACLES))
                 if p["open_fraction"][r] > 0.3 and np.linalg.norm(p["ee"] - p["handles"][r]) < 0.6]
-        return self._open_skill(near[0]) if near else "pick"
+        return self.open_skill(near[0]) if near else "pick"
 
-    def _folded(self):
+    def folded(self):
         """The arm's set-point (observed as joint_target) is folded: an arm that a contact holds off
         its set-point counts as folded, else the label would wait on the contact."""
         return np.abs(self.p["arm_target"] - env.ARM_REST).max() < REST_TOL
@@ -223,7 +223,7 @@ class Expert:
         lat = np.array([-n[1], n[0]])
         return n, lat, np.array(f.center) + n * f.size[0] / 2
 
-    def _support(self, pt):
+    def support(self, pt):
         """Name of the place under a point: a surface, a drawer (pulled out or not) or the fridge."""
         for f in self.p["layout"].furniture:
             if f.kind not in ("surface", "cabinet", "fridge"):
@@ -263,14 +263,14 @@ class Expert:
         xy = point[:2] - u * REACH[kind]          # on the line from the work pose to the point, at reach
         return (*xy, np.arctan2(u[1], u[0]))
 
-    def _at_work(self, point, place):
+    def at_work(self, point, place):
         """Facing the point at arm's reach: where a pick or place acts (its base label keeps it there)."""
         x, y, yaw = self.p["base"]
         to = np.asarray(point[:2]) - [x, y]
         return (abs(_wrap(np.arctan2(to[1], to[0]) - yaw)) < WORK_YAW
                 and abs(np.linalg.norm(to) - self._reach(place)) < WORK_DIST)
 
-    def _at_pose(self, pose):
+    def at_pose(self, pose):
         """Near an opening pose."""
         x, y, yaw = self.p["base"]
         return np.hypot(pose[0] - x, pose[1] - y) < OPEN_XY and abs(_wrap(pose[2] - yaw)) < OPEN_YAW

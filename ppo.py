@@ -8,8 +8,8 @@ PPO adds a learned log-std for the arm and base means, and a value head on the e
 The algorithm follows CleanRL's `ppo_continuous_action.py` (Schulman et al. 2017: clipped ratio,
 GAE, minibatch epochs), with the grip as a categorical over release, keep, grasp.
 
-    python ppo.py --steps 2000000 --out ckpt/mono.pt      # the CPU budget of the README's Mono row
-    python ppo.py --steps 2000000 --out ckpt/mono.pt --resume
+    python ppo.py --steps 800000 --out ckpt/mono.pt       # the CPU budget of the README's Mono row
+    python ppo.py --steps 800000 --out ckpt/mono.pt --resume
     python evaluate.py --policy ckpt/mono.pt
 
 Writes CKPT (actor only, train.py's format), CKPT.last.pt (resumable) and CKPT.csv: per update the
@@ -34,7 +34,7 @@ from train import save_atomic   # atomic writes, as train.py checkpoints
 
 @dataclass
 class Config:
-    steps: int = 2_000_000
+    steps: int = 800_000
     """env steps of training in all"""
     out: str = "ckpt/mono.pt"
     """checkpoint to write; CKPT.last.pt and CKPT.csv go beside it"""
@@ -86,7 +86,7 @@ class ActorCritic(nn.Module):
         """depth (N, 1, H, W) in [0, 1], state (N, S) -> (means (N, 9), grip logits (N, 3), value (N,))."""
         x = self.actor.embed_obs(depth[:, None], state[:, None])             # (N, 1, D)
         mask = torch.ones(x.shape[:2], dtype=torch.bool)
-        out = self.actor.infer_action(x, None, mask)
+        out = self.actor.infer_action(x, None, mask)   # context 1, no memory: a reactive policy
         means = torch.cat([out["arm"][:, 0], out["base"][:, 0]], -1)
         return means, out["grip_logits"][:, 0], self.value(x[:, 0]).squeeze(-1)
 
@@ -98,7 +98,7 @@ class ActorCritic(nn.Module):
 def to_inputs(obs, size):
     """Observations of N envs -> (depth (N, 1, S, S) in [0, 1], quantised as the demos are; state (N, S))."""
     depth = np.stack([env.depth_to_uint8(o["depth"]) for o in obs]).astype(np.float32) / 255.0
-    return torch.from_numpy(depth).view(len(obs), 1, size, size), torch.from_numpy(np.stack([env.state_vector(o) for o in obs]))
+    return torch.from_numpy(depth).view(len(obs), 1, size, size), torch.from_numpy(np.stack([env.state_vector(o, env.STATE_LAYOUT) for o in obs]))
 
 
 def to_action(cont, grip):
@@ -129,7 +129,7 @@ def train(cfg, make_env=None):
     env_config = asdict(envs[0].config)   # what evaluate.py will run the actor in
     size = envs[0].config.depth_size
     episodes = env.make_episodes("train", 1000, seed=cfg.seed)   # the mix of Sec. 3, drawn in turn
-    margs = model.ModelConfig(depth_size=size, context=1, d_vis=cfg.d_model // 2,
+    margs = model.ModelConfig(depth_size=size, state_layout=envs[0].state_layout, context=1, memory=0, d_vis=cfg.d_model // 2,
                               d_state=cfg.d_model - cfg.d_model // 2, d_model=cfg.d_model,
                               variant="no_skill", prev_action=False, skill_sample=0.0)
     net = ActorCritic(margs)
@@ -159,7 +159,7 @@ def train(cfg, make_env=None):
             for i, e in enumerate(envs):
                 a = np.r_[rng.uniform(-1, 1, 9), rng.choice(env.GRIP_VALUES)].astype(np.float32)
                 obs[i], _, terminated, truncated, _ = e.step(a)
-                states.append(env.state_vector(obs[i]))
+                states.append(env.state_vector(obs[i], env.STATE_LAYOUT))
                 if terminated or truncated:
                     obs[i] = reset(e)
         net.actor.state_mean.copy_(torch.from_numpy(np.mean(states, 0)))

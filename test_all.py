@@ -13,6 +13,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 
 import mujoco
 import numpy as np
@@ -48,6 +49,47 @@ def test_observation_shapes_and_dtypes():
     assert env.state_vector(obs).shape == (env.STATE_DIM,)
     assert env.depth_to_uint8(obs["depth"]).dtype == np.uint8
     assert info["skill_gt"] in range(len(env.SKILLS)) and info["receptacle"] in range(len(env.RECEPTACLES) + 1)
+
+
+def test_paper_mode_does_not_see_a_receptacle_out_of_view():
+    """obs="paper" (the default) reads nothing of the world's state: open or shut a drawer behind the
+    robot, observe again, and every number is the same; obs="privileged" reads it in receptacle_open."""
+    ep = next(ep for ep in env.make_episodes("train", 40) if ep.obj_receptacle == 1)   # target in drawer_0
+    for mode, same in (("paper", True), ("privileged", False)):
+        e = env.RearrangeEnv(depth_size=16, obs=mode)
+        e.reset(seed=0, options={"episode": ep})
+        cab = next(f for f in e.layout.furniture if f.name == "cabinet")
+        x, y, _ = e.ids["poses"]["table_0"]
+        e.data.qpos[e.ids["base_q"]] = [x, y, np.arctan2(y - cab.center[1], x - cab.center[0])]   # back to it
+        mujoco.mj_forward(e.model, e.data)
+        assert not any(e.in_view(h) for h in e.privileged()["handles"][:2])
+        before = e._observe()
+        e.data.qpos[e.ids["rec_q"][0]] = env.DRAWER_TRAVEL                    # drawer_0 pulled right out
+        mujoco.mj_forward(e.model, e.data)
+        after = e._observe()
+        assert sorted(before) == sorted(after) == sorted(["depth"] + [k for k, _ in env.state_layout(mode)])
+        assert all(np.array_equal(before[k], after[k]) for k in before) == same, mode
+    with pytest.raises(ValueError, match="obs mode 'privileged2'"):
+        env.RearrangeEnv(obs="privileged2")
+
+
+def test_receptacle_open_labels_match_the_simulator():
+    """The demos' receptacle_open target, per step: the open fraction of the target's receptacle (1 once
+    picked) and of the goal's, read here from the joints the label does not use."""
+    class Probe(env.RearrangeEnv):
+        def _observe(self):
+            frac = np.clip(self.data.qpos[self.ids["rec_q"]] / [env.DRAWER_TRAVEL, env.DRAWER_TRAVEL, env.DOOR_RANGE], 0, 1)
+            self.log.append((frac, self.privileged()["picked"]))
+            return super()._observe()
+    e = Probe(depth_size=8)
+    e.log = []
+    ep = next(ep for ep in env.make_episodes("train", 40) if ep.kind == "very_hard")
+    data = collect.record_episode(e, ep, seed=1)
+    assert bool(data["success"]) and len(e.log) == len(data["action"]) + 1   # the last obs is never acted on
+    want = np.array([[1.0 if picked else frac[ep.obj_receptacle - 1], frac[ep.goal_receptacle - 1]]
+                     for frac, picked in e.log[:-1]], np.float32)
+    np.testing.assert_allclose(data["receptacle_open"], want, atol=1e-6)
+    assert want[0].max() == 0 and want[:, 1].max() > expert.NEED_OPEN   # both start shut; the goal's is opened
 
 
 def test_joint_target_is_the_sum_of_arm_actions_and_the_joints_follow_it():
@@ -407,8 +449,9 @@ def test_dagger_the_policy_drives_whole_segments_and_the_expert_labels_every_ste
 
 def test_perturbation_events_apply_where_they_should_and_the_expert_recovers():
     """collect.py --events: at the start only a push applies; a receptacle is shut only while the arm is
-    out of it, the target dropped only above a surface or receptacle. The expert, a function of the
-    state, recovers from each (reopens, drives back, picks again) and solves the episode."""
+    out of it and the camera sees its handle, the target dropped only above a surface or receptacle.
+    The expert, a function of the state, recovers from each (reopens, drives back, picks again) and
+    solves the episode. (The fridge's handle is out of view whenever the arm is out of the fridge.)"""
     e = env.RearrangeEnv(depth_size=8)
     for ep in (_first("object_closed", lambda ep: ep.object_places[ep.target].startswith("drawer")),
                _first("object_closed", lambda ep: ep.object_places[ep.target] == "fridge")):
@@ -425,21 +468,22 @@ def test_perturbation_events_apply_where_they_should_and_the_expert_recovers():
             p = e.privileged()
             if kind == "shut":
                 r = events["shut"][0]
-                assert np.linalg.norm(p["ee"] - p["handles"][r]) > collect.SHUT_CLEAR
+                assert np.linalg.norm(p["ee"] - p["handles"][r]) > collect.SHUT_CLEAR and e.in_view(p["handles"][r])
                 e.close_receptacle(r)
                 assert e.open_fraction()[r] == 0
             elif kind == "push":
                 assert any(e.push_base(0.2 * np.cos(a), 0.2 * np.sin(a), 0.1) for a in np.linspace(0, 6, 12))
                 assert np.isclose(np.linalg.norm(e.privileged()["base"][:2] - p["base"][:2]), 0.2)
             elif kind == "drop":
-                assert x._support(p["objects"][p["target"]]) != "floor"
+                assert x.support(p["objects"][p["target"]]) != "floor"
                 e.drop()
                 assert e.privileged()["held"] == -1
             if kind:
                 struck[kind] = info["steps"]
             obs, _, terminated, truncated, info = e.step(action)
             done = terminated or truncated
-        assert sorted(struck) == sorted(collect.EVENTS) and info["success"], (ep.object_places[ep.target], struck, info)
+        want = collect.EVENTS if ep.object_places[ep.target].startswith("drawer") else ("push", "drop")
+        assert sorted(struck) == sorted(want) and info["success"], (ep.object_places[ep.target], struck, info)
 
 
 def test_is_holding_covers_a_grasped_handle():
@@ -478,13 +522,14 @@ def run(script, *args, check=True):
 
 
 def collect_run(out, episodes, *extra, check=True):
+    """collect.py without the recipe's noise and events (the plumbing tests' demos), unless extra sets them."""
     return run("collect.py", "--episodes", episodes, "--out", out, "--depth-size", DEPTH, "--seed", 0,
-               "--log-every", 0, *extra, check=check)
+               "--log-every", 0, "--noise", 0, "--nav-noise", 0, "--events", 0, *extra, check=check)
 
 
-def read_dir(out):
+def read_dir(out, state_dim=env.STATE_DIM):
     """{file name: {key: array}} of every episode file in a dataset directory."""
-    return {n: collect.load_episode(os.path.join(out, n)) for n in sorted(os.listdir(out)) if n.endswith(".npz")}
+    return {n: collect.load_episode(os.path.join(out, n), state_dim) for n in sorted(os.listdir(out)) if n.endswith(".npz")}
 
 
 def assert_same(a, b):
@@ -517,7 +562,7 @@ def test_collect_round_trip(demos):
         assert T > 10
         shapes = {"depth": ((T, DEPTH, DEPTH), np.uint8), "state": ((T, env.STATE_DIM), np.float32),
                   "action": ((T, env.ACTION_DIM), np.float32), "skill": ((T,), np.int8),
-                  "receptacle": ((T,), np.int8), "reward": ((T,), np.float32),
+                  "receptacle": ((T,), np.int8), "receptacle_open": ((T, 2), np.float32), "reward": ((T,), np.float32),
                   "events": ((len(collect.EVENTS),), np.int64), "success": ((), np.bool_),
                   "layout": ((), np.int64), "seed": ((), np.int64), "index": ((), np.int64)}
         for key, (shape, dtype) in shapes.items():
@@ -531,10 +576,12 @@ def test_collect_round_trip(demos):
         assert set(np.unique(d["skill"])) <= set(range(len(env.SKILLS))) and len(np.unique(d["skill"])) >= 3
         assert np.all(np.abs(d["action"][:, :9]) <= 1.0 + 1e-6)
         assert set(np.unique(d["action"][:, 9])) <= set(env.GRIP_VALUES)
-        collect.load_episode(demos / name)
+        assert ((0 <= d["receptacle_open"]) & (d["receptacle_open"] <= 1)).all()
+        collect.load_episode(demos / name, env.STATE_DIM)
     meta = json.loads((demos / "meta.json").read_text())
     assert meta["env_config"]["depth_size"] == DEPTH and meta["seed"] == 0 and meta["noise"] == 0.0
-    assert meta["format"] == collect.FORMAT_VERSION == 2 and meta["events"] == 0.0 and meta["policy"] is None
+    assert meta["format"] == collect.FORMAT_VERSION == 3 and meta["events"] == 0.0 and meta["policy"] is None
+    assert meta["env_config"]["obs"] == "paper" and meta["state_layout"] == [list(x) for x in env.STATE_LAYOUT]
     assert meta["skills"] == list(env.SKILLS) and meta["state_layout"][0] == ["joint", 7]
     assert {"python", "numpy", "mujoco"} <= set(meta["versions"])
     stats = run("collect.py", "--stats", demos).stdout
@@ -581,14 +628,18 @@ def test_collect_refuses_corrupt_foreign_and_mismatched(demos, tmp_path):
     assert p.returncode != 0 and "meta.json" in p.stderr and "seed" in p.stderr
     p = run("collect.py", "--episodes", 2, "--out", out, "--depth-size", 24, check=False)
     assert p.returncode != 0 and "env_config" in p.stderr
-    old = {k: v for k, v in collect.load_episode(out / "ep_000000.npz").items() if k != "events"}
-    np.savez(tmp_path / "ep_000001.npz", **old)                     # format 1: no events
-    with pytest.raises(ValueError, match=r"ep_000001.npz: missing keys \['events'\]"):
-        collect.load_episode(tmp_path / "ep_000001.npz")
+    old = {k: v for k, v in collect.load_episode(out / "ep_000000.npz", env.STATE_DIM).items() if k != "receptacle_open"}
+    np.savez(tmp_path / "ep_000001.npz", **old)                     # format 2: no receptacle_open
+    with pytest.raises(ValueError, match=r"ep_000001.npz: missing keys \['receptacle_open'\]"):
+        collect.load_episode(tmp_path / "ep_000001.npz", env.STATE_DIM)
+    with pytest.raises(ValueError, match=r"ep_000000.npz: state has shape \(\d+, 30\), expected \(\d+, 32\)"):
+        collect.load_episode(out / "ep_000000.npz", 32)             # read as privileged-mode data
     with pytest.raises(ValueError, match="ep_000000.npz"):
-        bad = dict(collect.load_episode(out / "ep_000000.npz"), reward=np.full(3, np.nan, np.float32))
+        bad = dict(collect.load_episode(out / "ep_000000.npz", env.STATE_DIM), reward=np.full(3, np.nan, np.float32))
         np.savez(tmp_path / "ep_000000.npz", **bad)
-        collect.load_episode(tmp_path / "ep_000000.npz")
+        collect.load_episode(tmp_path / "ep_000000.npz", env.STATE_DIM)
+    p = collect_run(out, 2, "--obs", "privileged", check=False)     # the other mode is another dataset
+    assert p.returncode != 0 and "env_config" in p.stderr
 
 
 def test_collect_keep_failed_and_give_up(tmp_path):
@@ -695,7 +746,8 @@ def checkpoints(tmp_path_factory):
     paths = []
     for seed in (0, 1):
         torch.manual_seed(seed)
-        cfg = model.ModelConfig(depth_size=DEPTH, context=4, d_vis=16, d_state=16, d_model=32, n_head=2)
+        cfg = model.ModelConfig(depth_size=DEPTH, context=4, d_vis=16, d_state=16, d_model=32, n_head=2, memory=3,
+                                memory_stride=4)
         path = str(root / f"st_s{seed}.pt")
         torch.save({"model": model.SkillTransformer(cfg).state_dict(), "model_args": dataclasses.asdict(cfg),
                     "env_config": env_config, "rtg_max": 0.0}, path)
@@ -747,6 +799,37 @@ def test_evaluate_checkpoints(checkpoints, tmp_path):
     assert {r["failure"] for r in res["rollouts"]} <= {"timeout", "collision", "collision_accum"}
     assert 0 <= joined["skill_accuracy"]["mean"] <= 100
     assert res["methods"][0]["setting"]["context"] == 4 and res["methods"][0]["setting"]["variant"] == "st"
+
+
+def test_an_evaluation_depends_on_its_episodes_seeds_and_policy_only(checkpoints, tmp_path):
+    """The same checkpoint on the same episodes with --batch 1, 3 and 8, with one worker and two:
+    the same actions, so the same per-episode results; an evaluation killed midway (and a line cut
+    short by the kill) resumes with --resume to the JSON of one never stopped."""
+    common = ["--policy", checkpoints[0], "--episodes", 7, "--max-steps", 30, "--depth-size", DEPTH, "--log-every", 0]
+    runs = {}
+    for batch, workers in ((8, 1), (1, 1), (3, 2)):
+        out = tmp_path / f"b{batch}_w{workers}.json"
+        run("evaluate.py", *common, "--batch", batch, "--workers", workers, "--out", out)
+        runs[batch, workers] = json.loads(out.read_text())
+    first = runs[8, 1]["rollouts"]
+    assert len(first) == 7 and len({(r["steps"], r["return"]) for r in first}) > 1
+    assert all(r["rollouts"] == first for r in runs.values())
+    out = tmp_path / "killed.json"
+    p = subprocess.Popen([sys.executable, "evaluate.py", *map(str, common), "--batch", "1", "--workers", "1",
+                          "--out", str(out)], cwd=HERE, stdout=subprocess.DEVNULL)
+    log = tmp_path / "killed.jsonl"
+    while p.poll() is None:                       # the header and two rollouts written: kill it
+        if log.exists() and log.read_text().count("\n") >= 3:
+            p.kill()
+        time.sleep(0.05)
+    assert not out.exists(), "the evaluation finished before it could be killed"
+    with open(log, "a") as f:
+        f.write('{"method": 0, "member": "cut short by a ki')          # a line the kill cut in half
+    p = run("evaluate.py", *common, "--batch", 3, "--workers", 2, "--out", out, "--resume")
+    assert "already in" in p.stdout
+    assert json.loads(out.read_text()) == dict(runs[3, 2], config=dict(runs[3, 2]["config"], out=str(out)))
+    p = run("evaluate.py", *common, "--episodes", 6, "--out", out, "--resume", check=False)
+    assert p.returncode != 0 and "records another evaluation" in p.stderr
 
 
 def test_evaluate_labels_the_policy_states_with_the_oracle_skill(checkpoints, tmp_path):
@@ -816,7 +899,7 @@ def test_modular_planner_switches_on_its_conditions(modular):
     e.reset(seed=0, options={"episode": hard})
     oracle.reset()
     r = hard.goal_receptacle - 1
-    assert oracle.todo[0][:2] == [("navigate", r), (oracle.probes[0]._open_skill(r), r)]
+    assert oracle.todo[0][:2] == [("navigate", r), (oracle.probes[0].open_skill(r), r)]
 
 
 def test_modular_planner_moves_on_at_timeouts_and_never_retries(modular, monkeypatch):
@@ -864,7 +947,7 @@ class _Target:
     """A task PPO must be able to learn: the reward is -|first arm action - 0.5|, 8 steps an episode."""
 
     def __init__(self):
-        self.config, self.t = env.EnvConfig(depth_size=DEPTH), 0
+        self.config, self.t, self.state_layout = env.EnvConfig(depth_size=DEPTH), 0, env.STATE_LAYOUT
 
     def obs(self):
         return {"depth": np.ones((DEPTH, DEPTH, 1), np.float32), **{k: np.zeros(n, np.float32) for k, n in env.STATE_LAYOUT}}
@@ -969,7 +1052,7 @@ def test_help():
 
 # === model.py and train.py ===
 
-TINY = dict(d_vis=16, d_state=16, d_model=32, n_layer=2, n_head=2, dropout=0.0)  # fast test network
+TINY = dict(d_vis=16, d_state=16, d_model=32, n_layer=2, n_head=2, dropout=0.0, memory=3, memory_stride=4)  # fast
 
 
 # --- helpers ---
@@ -998,10 +1081,10 @@ def write_demos(path, n_episodes=4, steps=(40, 70), size=16, seed=0, env_config=
             state=rng.standard_normal((T, env.STATE_DIM)).astype(np.float32), action=action,
             skill=np.sort(rng.integers(0, len(env.SKILLS), T)).astype(np.int8),
             receptacle=np.full(T, rng.integers(0, len(env.RECEPTACLES) + 1), np.int8),
-            reward=rng.normal(0.1, 0.5, T).astype(np.float32),
+            receptacle_open=rng.random((T, 2)).astype(np.float32), reward=rng.normal(0.1, 0.5, T).astype(np.float32),
             success=np.bool_(rng.random() < 0.8), layout=np.int64(i % 3), difficulty=np.str_("easy"),
             seed=np.int64(i), index=np.int64(i), events=np.zeros(3, np.int64))
-    meta = {"env_config": env_config or {"depth_size": size, "max_steps": 500},
+    meta = {"format": collect.FORMAT_VERSION, "env_config": env_config or {"depth_size": size, "max_steps": 500, "obs": "paper"},
             "state_layout": [list(x) for x in env.STATE_LAYOUT], "skills": list(env.SKILLS),
             "receptacles": list(env.RECEPTACLES)}
     with open(os.path.join(path, "meta.json"), "w") as f:
@@ -1009,18 +1092,7 @@ def write_demos(path, n_episodes=4, steps=(40, 70), size=16, seed=0, env_config=
     return path
 
 
-def random_batch(cfg, B=2, T=None, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    T = T or cfg.context
-    S = cfg.depth_size
-    action = torch.rand(B, T, env.ACTION_DIM, generator=g) * 2 - 1
-    action[..., env.GRIP] = torch.randint(-1, 2, (B, T), generator=g).float()
-    return {"depth": torch.rand(B, T, 1, S, S, generator=g),
-            "state": torch.randn(B, T, env.STATE_DIM, generator=g),
-            "prev_action": torch.rand(B, T, env.ACTION_DIM, generator=g) * 2 - 1, "action": action,
-            "skill": torch.randint(0, cfg.n_skills, (B, T), generator=g),
-            "receptacle": torch.randint(0, cfg.n_receptacles, (B, T), generator=g),
-            "rtg": torch.randn(B, T, generator=g), "mask": torch.ones(B, T, dtype=torch.bool)}
+random_batch = model.random_batch
 
 
 def fake_obs(rng, size):
@@ -1045,7 +1117,8 @@ def trained(tmp_path_factory):
     out = str(root / "ckpt" / "st.pt")
     stdout = run_script([sys.executable, "train.py", "--data", data, "--out", out, "--epochs", "2",
                          "--warmup-epochs", "1", "--batch-size", "4", "--d-model", "32", "--n-head", "2",
-                         "--context", "8", "--log-interval", "1", "--seed", "1", "--threads", "1"])
+                         "--context", "8", "--memory", "3", "--memory-stride", "4", "--log-interval", "1",
+                         "--seed", "1", "--threads", "1", "--grad-norms"])
     return data, out, stdout
 
 
@@ -1061,21 +1134,24 @@ def test_output_shapes(variant):
     if "skill_logits" in out:
         assert out["skill_logits"].shape == (3, 6, 5)
     if variant in ("st", "lstm"):
-        assert out["aux_logits"].shape == (3, 6, 4)
+        assert out["aux_logits"].shape == (3, 6, 4) and out["open_logits"].shape == (3, 6, 2)
 
 
 def test_near_features_feed_the_reach_targets_at_centimetre_scale():
     """near_scale > 0 (the default): the state MLP reads the normalised state and tanh(v / near_scale)
     of the cup-to-object and cup-to-goal vectors; 0 reads the state alone."""
     assert [name for name, n in env.STATE_LAYOUT for _ in range(n)][18:24] == ["obj_start"] * 3 + ["goal"] * 3
-    assert model.NEAR_INDEX == list(range(18, 24))
     cfg = model.ModelConfig(depth_size=16, context=4, near_scale=0.1, **TINY)
+    assert cfg.near_index == list(range(18, 24))
+    priv = model.ModelConfig(state_layout=env.state_layout("privileged"))
+    assert priv.near_index == list(range(18, 24)) and priv.state_dim == 32
     net = model.SkillTransformer(cfg)
     seen = []
     net.state_mlp.register_forward_hook(lambda m, inp, out: seen.append(inp[0]))
     batch = random_batch(cfg, B=2)
     assert net(batch)["arm"].shape == (2, 4, 7)
-    x = seen[-1]
+    x = seen[0]                                  # the window's; then the memory tokens'
+    assert seen[1].shape == (2, cfg.memory, env.STATE_DIM + 6)
     assert x.shape == (2, 4, env.STATE_DIM + 6)
     assert torch.allclose(x[..., :env.STATE_DIM], (batch["state"] - net.state_mean) / net.state_std)
     assert torch.allclose(x[..., env.STATE_DIM:], torch.tanh(batch["state"][..., 18:24] / 0.1))
@@ -1142,30 +1218,46 @@ def test_scheduled_sampling_feeds_the_predicted_skill_and_stays_causal():
         model.SkillTransformer(model.ModelConfig(depth_size=16, skill_sample=1.5, **TINY))
 
 
-def test_padding_matches_rollout():
-    """A left-padded training window gives the Policy's outputs on the same steps."""
-    cfg = model.ModelConfig(depth_size=16, context=5, **TINY)
+@pytest.mark.parametrize("variant", ("st", "dt"))
+def test_rollout_matches_training_windows_with_memory(variant):
+    """The Policy's skill and action at step t are the training pass's on the window train.get_batch
+    cuts at t: left padding in the first C steps, memory tokens from the states `memory_stride`
+    apart before the window (masked before step 0). What is trained is what runs."""
+    cfg = model.ModelConfig(depth_size=16, context=5, variant=variant, prev_action=True, **TINY)
     net = model.SkillTransformer(cfg).eval()
-    policy = model.Policy(net, {"depth_size": 16}, rtg_max=1.0)
+    policy = model.Policy(net, {"depth_size": 16, "obs": "paper"}, rtg_max=1.0)
     rng = np.random.default_rng(0)
-    obs = [fake_obs(rng, 16) for _ in range(3)]
-    actions = [policy.act(o) for o in obs]
-    C = cfg.context
-    depth = torch.zeros(1, C, 1, 16, 16)
-    state = torch.zeros(1, C, env.STATE_DIM)
-    prev = torch.zeros(1, C, env.ACTION_DIM)
-    skill = torch.zeros(1, C, dtype=torch.long)
-    for i, o in enumerate(obs):
-        depth[0, C - 3 + i, 0] = torch.from_numpy(env.depth_to_uint8(o["depth"])).float() / 255
-        state[0, C - 3 + i] = torch.from_numpy(env.state_vector(o))
-        skill[0, C - 3 + i] = actions[i][1]
-        if i:
-            prev[0, C - 3 + i] = torch.from_numpy(actions[i - 1][0])
-    mask = torch.tensor([[False] * (C - 3) + [True] * 3])
+    obs = [fake_obs(rng, 16) for _ in range(30)]
+    reward = rng.normal(size=30).astype(np.float32)
+    acts = [policy.act(o, reward[t - 1] if t else 0.0) for t, o in enumerate(obs)]
+    demo = train.add_inputs({"depth": np.stack([env.depth_to_uint8(o["depth"]) for o in obs]),
+                             "state": np.stack([env.state_vector(o) for o in obs]),
+                             "action": np.stack([a for a, _ in acts]), "skill": np.array([max(z, 0) for _, z in acts]),
+                             "receptacle": np.zeros(30, np.int64), "receptacle_open": np.zeros((30, 2), np.float32),
+                             "reward": reward})
+    demo["rtg"] = 1.0 - np.r_[0.0, np.cumsum(reward)[:-1]].astype(np.float32)   # the rollout's return-to-go
+    flat, starts = train.flatten_demos([demo], "cpu")
+    for t in (2, 9, 29):                   # padded; memory partly before step 0; memory all real
+        b = train.get_batch(flat, starts, np.array([[0, t]]), cfg.context, cfg.memory, cfg.memory_stride)
+        assert int(b["mem_mask"].sum()) == {2: 0, 9: 1, 29: 3}[t]
+        with torch.no_grad():
+            out = net(b)
+        if variant == "st":
+            assert int(out["skill_logits"][0, -1].argmax()) == acts[t][1]
+        np.testing.assert_allclose(out["arm"][0, -1].clamp(-1, 1).numpy(), acts[t][0][:7], atol=1e-5)
+
+
+def test_memory_tokens_are_read_and_optional():
+    cfg = model.ModelConfig(depth_size=16, context=4, **TINY)
+    net = model.SkillTransformer(cfg).eval()
+    batch = random_batch(cfg)
     with torch.no_grad():
-        out = net({"depth": depth, "state": state, "prev_action": prev, "skill": skill, "mask": mask})
-    assert int(out["skill_logits"][0, -1].argmax()) == actions[-1][1]
-    np.testing.assert_allclose(out["arm"][0, -1].clamp(-1, 1).numpy(), actions[-1][0][:7], atol=1e-5)
+        a = net(batch)["arm"]
+        assert not torch.allclose(net({**batch, "mem_state": -batch["mem_state"]})["arm"], a)
+        hidden = {**batch, "mem_state": -batch["mem_state"], "mem_mask": torch.zeros_like(batch["mem_mask"])}
+        torch.testing.assert_close(net(hidden)["arm"], net({**batch, "mem_mask": hidden["mem_mask"]})["arm"])
+    none = model.SkillTransformer(model.ModelConfig(depth_size=16, context=4, **dict(TINY, memory=0)))
+    assert not hasattr(none, "mem_pos") and none(random_batch(none.cfg))["arm"].shape == (2, 4, 7)
 
 
 def test_prev_action_off_ignores_a_t_minus_1():
@@ -1179,22 +1271,34 @@ def test_prev_action_off_ignores_a_t_minus_1():
         torch.testing.assert_close(net(batch)["arm"], a)
 
 
-def test_batched_policy_matches_single():
-    """act_batch over B episodes gives each the actions and skills it gets alone (evaluate.py --batch)."""
+def test_batched_policy_matches_single_bit_for_bit():
+    """act_batch over B episodes gives each exactly the actions and skills it gets alone, for B below
+    and above model.NET_BATCH (evaluate.py --batch must not change a result)."""
     cfg = model.ModelConfig(depth_size=16, context=4, **TINY)
     net = model.SkillTransformer(cfg).eval()
-    single = [model.Policy(net, {"depth_size": 16}, rtg_max=1.0) for _ in range(3)]
-    batched = model.Policy(net, {"depth_size": 16}, rtg_max=1.0, batch=3)
+    single = [model.Policy(net, {"depth_size": 16, "obs": "paper"}, rtg_max=1.0) for _ in range(11)]
+    batched = {B: model.Policy(net, {"depth_size": 16, "obs": "paper"}, rtg_max=1.0, batch=B) for B in (3, 11)}
     rng = np.random.default_rng(1)
-    for _ in range(6):                                     # past the context: the window slides
-        obs = [fake_obs(rng, 16) for _ in range(3)]
-        actions, skills = batched.act_batch(obs, [0.1] * 3)
-        for i, p in enumerate(single):
-            a, z = p.act(obs[i], 0.1)
-            np.testing.assert_allclose(actions[i], a, atol=1e-5)
-            assert skills[i] == z
+    for _ in range(12):                                    # past the context and the first memory step
+        obs = [fake_obs(rng, 16) for _ in range(11)]
+        alone = [p.act(o, 0.1) for p, o in zip(single, obs)]
+        for B, p in batched.items():
+            actions, skills = p.act_batch(obs[:B], [0.1] * B)
+            assert np.array_equal(actions, np.stack([a for a, _ in alone[:B]])) and skills == [z for _, z in alone[:B]]
     with pytest.raises(ValueError, match="batch 3"):
-        batched.act_batch(obs[:2], [0.0] * 2)
+        batched[3].act_batch(obs[:2], [0.0] * 2)
+
+
+def test_policy_refuses_an_observation_of_the_other_mode():
+    cfg = model.ModelConfig(depth_size=16, context=4, **TINY)
+    policy = model.Policy(model.SkillTransformer(cfg), {"depth_size": 16, "obs": "paper"}, rtg_max=1.0)
+    obs = fake_obs(np.random.default_rng(0), 16)
+    with pytest.raises(ValueError, match="obs='paper'.*obs='privileged'"):
+        policy.act({**obs, "receptacle_open": np.ones(2, np.float32)})
+    priv = model.ModelConfig(depth_size=16, context=4, state_layout=env.state_layout("privileged"), **TINY)
+    policy = model.Policy(model.SkillTransformer(priv), {"depth_size": 16, "obs": "privileged"}, rtg_max=1.0)
+    with pytest.raises(ValueError, match="obs='privileged'.*obs='paper'"):
+        policy.act(obs)
 
 
 def test_focal_loss_matches_cross_entropy_at_gamma_0():
@@ -1209,6 +1313,7 @@ def test_overfit_tiny_batch():
     cfg = model.ModelConfig(depth_size=16, context=8, **TINY)
     net = model.SkillTransformer(cfg)
     batch = random_batch(cfg, B=4)
+    batch["receptacle_open"] = batch["receptacle_open"].round()   # soft targets have an entropy floor
     opt = torch.optim.Adam(net.parameters(), lr=3e-3)
     first = None
     for _ in range(200):
@@ -1229,7 +1334,7 @@ def test_every_variant_trains_one_step(variant):
     losses = net.compute_loss(net(batch), batch)
     assert set(losses) >= {"loss", "arm", "base", "grip"} and torch.isfinite(losses["loss"])
     assert ("skill" in losses) == (variant in ("st", "lstm", "dt_skill"))
-    assert ("aux" in losses) == (variant in ("st", "lstm"))
+    assert ("aux" in losses) == ("open" in losses) == (variant in ("st", "lstm"))
     before = [p.detach().clone() for p in net.parameters()]
     opt = torch.optim.AdamW(net.parameters(), lr=1e-3)
     losses["loss"].backward()
@@ -1265,6 +1370,13 @@ def test_windows_and_padding(tmp_path):
     np.testing.assert_array_equal(batch["prev_action"][1, -1].numpy(), demos[1]["action"][29])
     assert batch["prev_action"][0, 5].abs().sum() == 0  # a_{-1} = 0 at the episode start
     assert batch["rtg"][1, -1] == pytest.approx(demos[1]["reward"][30:].sum(), rel=1e-5)
+    assert "mem_state" not in batch
+    batch = train.get_batch(flat, starts, np.array([[0, 2], [1, 30]]), 8, memory=3, stride=5)
+    assert batch["mem_state"].shape == (2, 3, env.STATE_DIM) and not batch["mem_mask"][0].any()
+    batch = train.get_batch(flat, starts, np.array([[1, 20]]), 8, memory=3, stride=5)   # window 13..20
+    assert batch["mem_mask"][0].tolist() == [False, True, True]           # steps -2 (padding), 3, 8
+    np.testing.assert_array_equal(batch["mem_state"][0, 1:].numpy(), demos[1]["state"][[3, 8]])
+    assert not batch["mem_state"][0, 0].any()
 
 
 def test_segments_cut_nav_pick_and_nav_place(tmp_path):
@@ -1330,20 +1442,21 @@ def test_demos_from_several_directories(tmp_path):
 
 
 def test_log_has_each_loss_terms_gradient_norm_on_the_encoder(trained):
-    """CKPT.csv: per log row the losses and each term's gradient norm on the shared encoder; the
-    printed line shows them too."""
+    """CKPT.csv: per log row the losses and, with --grad-norms, each term's gradient norm on the
+    shared encoder; the printed line shows them too."""
     data, out, stdout = trained
     with open(out[:-3] + ".csv") as f:
         rows = list(csv.DictReader(f))
-    assert rows and set(train.GRAD_COLUMNS) <= set(rows[0]) and "grad (skill" in stdout
+    assert rows and set(train.GRAD_COLUMNS) <= set(rows[0]) and " grad skill " in stdout
     for row in rows:
         for k in ("loss",) + train.GRAD_COLUMNS:
             assert np.isfinite(float(row[k])) and float(row[k]) >= 0, (k, row[k])
     assert any(float(row["grad_aux"]) > 0 for row in rows)
     net = model.SkillTransformer(model.ModelConfig(depth_size=16, context=4, **TINY))
     batch = random_batch(net.cfg)
-    losses = net.compute_loss(net(batch), batch, skill_weight=0.5, aux_weight=2.0)
-    want = losses["arm"] + losses["base"] + losses["grip"] + 0.5 * losses["skill"] + 2.0 * losses["aux"]
+    losses = net.compute_loss(net(batch), batch, skill_weight=0.5, aux_weight=2.0, open_weight=0.25)
+    want = losses["arm"] + losses["base"] + losses["grip"] + 0.5 * losses["skill"] + 2.0 * losses["aux"] \
+        + 0.25 * losses["open"]
     torch.testing.assert_close(losses["loss"], want)
 
 
@@ -1351,15 +1464,23 @@ def test_help_and_flags():
     assert "--warmup-epochs" in run_script([sys.executable, "train.py", "--help"])
     cfg = train.parse_args(["--warmup_epochs=3", "--resume", "--lr", "1e-3", "--variant", "dt"])
     assert (cfg.warmup_epochs, cfg.resume, cfg.lr, cfg.variant) == (3, True, 1e-3, "dt")
-    cfg = train.parse_args([])                                  # the CPU recipe is the default
+    cfg = train.parse_args([])                                  # the recipe is the default
     assert (cfg.near_scale, cfg.epochs, cfg.batch_size, cfg.lr, cfg.demos_per_epoch, cfg.warmup_epochs) == \
-        (0.1, 150, 64, 5e-4, 80, 20)
-    assert (cfg.prev_action, cfg.skill_sample, cfg.skill_weight, cfg.aux_weight) == (False, 0.5, 0.3, 0.1)
+        (0.1, 300, 64, 5e-4, 80, 20)
+    assert (cfg.prev_action, cfg.skill_sample, cfg.skill_weight, cfg.aux_weight, cfg.open_weight) == \
+        (False, 0.5, 0.3, 0.1, 0.1)
+    assert (cfg.context, cfg.memory, cfg.memory_stride, cfg.grad_norms) == (15, 12, 40, False)
+    m = model.ModelConfig()                                     # the recipe's network, as train.py builds it
+    assert (m.context, m.memory, m.memory_stride, m.d_model, m.prev_action, m.skill_sample) == \
+        (cfg.context, cfg.memory, cfg.memory_stride, cfg.d_model, cfg.prev_action, cfg.skill_sample)
+    help_ = re.sub(r"\s+", " ", run_script([sys.executable, "train.py", "--help"])).replace(" --", "  --")
+    default = lambda flag: re.search(rf"  {flag} [A-Z_]+ .*?\(default: ([^)]*)\)", help_).group(1)
+    assert (default("--epochs"), default("--context"), default("--memory")) == ("300", "15", "12")
 
 
 def test_train_script_then_policy(trained):
     data, out, stdout = trained
-    assert "samples/s" in stdout and "eta" in stdout
+    assert "ms/iter" in stdout and "eta" in stdout
     for path in (out, out[:-3] + ".last.pt", out[:-3] + ".csv"):
         assert os.path.exists(path), path
     ckpt = torch.load(out, weights_only=True)                 # the last epoch's model, as CKPT.last.pt
@@ -1401,7 +1522,7 @@ def test_checkpoint_round_trip(tmp_path):
     net = model.SkillTransformer(cfg).eval()
     path = str(tmp_path / "c.pt")
     train.save_atomic({"model": net.state_dict(), "model_args": dataclasses.asdict(cfg),
-                       "env_config": {"depth_size": 16}, "rtg_max": 3.0}, path)
+                       "env_config": {"depth_size": 16, "obs": "paper"}, "rtg_max": 3.0}, path)
     policy = model.load_policy(path)
     batch = random_batch(cfg, B=1)
     with torch.no_grad():
@@ -1421,23 +1542,54 @@ def test_checkpoint_round_trip(tmp_path):
 
 def test_env_config_mismatch_is_refused(trained, tmp_path):
     data, out, _ = trained
-    other = write_demos(str(tmp_path / "other"), env_config={"depth_size": 16, "max_steps": 999})
+    other = write_demos(str(tmp_path / "other"), env_config={"depth_size": 16, "max_steps": 999, "obs": "paper"})
     for name in ("st.pt", "st.last.pt", "st.csv"):
         shutil.copy(os.path.join(os.path.dirname(out), name), tmp_path / name)
     cfg = train.TrainConfig(data=other, out=str(tmp_path / "st.pt"), resume=True, epochs=3, batch_size=4,
-                            d_model=32, n_head=2, context=8, threads=1)
+                            d_model=32, n_head=2, context=8, memory=3, memory_stride=4, seed=1, threads=1)
     with pytest.raises(ValueError, match="max_steps"):
         train.train(cfg)
+    # the other observation mode: a privileged dataset against the paper-mode checkpoint
+    priv = write_demos(str(tmp_path / "priv"), env_config={"depth_size": 16, "max_steps": 500, "obs": "privileged"})
+    meta = json.loads(open(os.path.join(priv, "meta.json")).read())
+    with pytest.raises(ValueError, match="state_layout"):               # its meta must list receptacle_open
+        train.load_demos(priv)
+    meta["state_layout"] = [list(x) for x in env.state_layout("privileged")]
+    with open(os.path.join(priv, "meta.json"), "w") as f:
+        json.dump(meta, f)
+    with pytest.raises(ValueError, match="state has shape"):            # and its files 32 state numbers
+        train.load_demos(priv)
+    with pytest.raises(ValueError, match=r"obs: 'paper' vs 'privileged'"):
+        train.check_env_config(torch.load(out, weights_only=True), meta, out, priv)
+    with pytest.raises(ValueError, match="obs"):
+        train.load_demos(f"{data},{priv}")
 
 
-def test_resume_continues(trained, tmp_path):
-    data, out, _ = trained
-    for name in ("st.pt", "st.last.pt", "st.csv"):
-        shutil.copy(os.path.join(os.path.dirname(out), name), tmp_path / name)
-    cfg = train.TrainConfig(data=data, out=str(tmp_path / "st.pt"), resume=True, epochs=3, warmup_epochs=1,
-                            batch_size=4, d_model=32, n_head=2, context=8, log_interval=1, seed=1, threads=1)
-    train.train(cfg)
-    assert torch.load(str(tmp_path / "st.last.pt"), weights_only=True)["epoch"] == 3
+def test_a_killed_training_resumes_to_the_same_weights(tmp_path):
+    """SIGKILL between two checkpoints, then the same command with --resume: the final weights and
+    the log equal those of an uninterrupted run, bit for bit (scheduled sampling draws from torch's
+    generator, which the checkpoint carries). --resume with no checkpoint trains from scratch."""
+    data = write_demos(str(tmp_path / "d"), n_episodes=3, steps=(60, 80))
+    args = ["--data", data, "--epochs", "4", "--warmup-epochs", "1", "--batch-size", "4", "--d-model", "32",
+            "--n-head", "2", "--context", "8", "--memory", "3", "--memory-stride", "4", "--seed", "3",
+            "--threads", "1", "--log-interval", "3"]
+    full, killed = str(tmp_path / "full.pt"), str(tmp_path / "killed.pt")
+    out = run_script([sys.executable, "train.py", *args, "--out", full, "--resume"])
+    assert "no " + full[:-3] + ".last.pt yet, starting fresh" in out
+    p = subprocess.Popen([sys.executable, "train.py", *args, "--out", killed], cwd=HERE, stdout=subprocess.DEVNULL,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    last = killed[:-3] + ".last.pt"
+    while p.poll() is None:                      # kill it as soon as the first epoch's checkpoint is there
+        if os.path.exists(last) and torch.load(last, weights_only=True)["epoch"] >= 1:
+            p.kill()
+            break
+    p.wait()
+    assert not os.path.exists(killed), "the run finished before it could be killed"
+    run_script([sys.executable, "train.py", *args, "--out", killed, "--resume"])
+    a, b = (torch.load(f, weights_only=True)["model"] for f in (full, killed))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    rows = [list(csv.DictReader(open(f[:-3] + ".csv"))) for f in (full, killed)]
+    assert [(r["iter"], r["loss"]) for r in rows[0]] == [(r["iter"], r["loss"]) for r in rows[1]]
 
 
 def test_torchrun_two_processes(tmp_path):
@@ -1446,5 +1598,5 @@ def test_torchrun_two_processes(tmp_path):
     stdout = run_script([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "train.py",
                          "--data", data, "--out", out, "--epochs", "2", "--batch-size", "4",
                          "--d-model", "32", "--n-head", "2", "--context", "8", "--log-interval", "1"])
-    assert "world 2" in stdout and stdout.count("samples/s") == 2  # 2 epochs x 1 iteration, rank 0 only
+    assert "world 2" in stdout and stdout.count("ms/iter") == 2  # 2 epochs x 1 iteration, rank 0 only
     assert model.load_policy(out).variant == "st"

@@ -1,16 +1,18 @@
 """Imitation learning of the Skill Transformer (and baselines) from expert demonstrations.
 
-Follows Sec. 4.2 and Appendix A of the paper: random windows of C = 30 steps from the demos, the
+Follows Sec. 4.2 and Appendix A of the paper: random windows of C steps from the demos, the
 losses computed at every step of the window, AdamW, an "epoch" of 80 randomly chosen
-demonstrations, a linear learning-rate warm-up from 1e-8 followed by a cosine decay to 0. Two
-departures, each a flag: part of the steps feed action inference the skill module's own
-prediction instead of the true skill (--skill-sample 0.5; 0 is the paper's teacher forcing), and
-the last checkpoint is kept, not the one of the best success on a few `seen` episodes (with the
-20 or so a CPU affords, that choice is noise).
+demonstrations, a linear learning-rate warm-up from 1e-8 followed by a cosine decay to 0. The
+defaults are the README's recipe; its departures from the paper, each a flag with the experiment
+that set it (EXPERIMENTS.md): C = 15, not 30 (R20); memory tokens of older steps (R48); part of
+the steps feed action inference the skill module's own prediction instead of the true skill
+(--skill-sample 0.5; 0 is the paper's teacher forcing; R5); the skill and auxiliary losses
+weighted (R4); and the last checkpoint is kept, not the one of the best success on a few `seen`
+episodes (with the 20 or so a CPU affords, that choice is noise).
 
-    python train.py --data data/demos --out ckpt/st.pt                    # Skill Transformer
+    python train.py --data data/demos --out ckpt/st.pt                    # Skill Transformer, the recipe
     python train.py --data data/demos --out ckpt/dt.pt --variant dt       # or no_skill, lstm, dt_skill
-    python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt
+    python train.py --data data/demos --out ckpt/st.pt --resume           # continue ckpt/st.last.pt, if any
     python train.py --data data/demos --out ckpt/part.pt --segments nav-pick,nav-place   # Sec. 5.5
     for s in navigate pick place open_drawer open_fridge; do                           # BC-Modular
         python train.py --data data/demos --variant no_skill --skill $s --out ckpt/bcm_$s.pt; done
@@ -18,9 +20,11 @@ the last checkpoint is kept, not the one of the best success on a few `seen` epi
     python train.py --data data/heldout --validate ckpt/st.pt,ckpt/dt.pt   # fit on held-out demos
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
 
-For --out ckpt/st.pt it writes ckpt/st.pt (the final model), ckpt/st.last.pt (every epoch, with
-the optimizer state, for --resume) and ckpt/st.csv (losses, and each loss term's gradient norm on
-the shared encoder). The defaults (the CPU recipe) take about 25 min on 2 CPU cores for 1,000 demos.
+For --out ckpt/st.pt it writes ckpt/st.pt (the final model), ckpt/st.last.pt (every epoch: the
+optimizer, the schedule's position and every random generator's state, so that a run killed at any
+moment and resumed ends with the same weights, bit for bit, as one never stopped) and ckpt/st.csv
+(the losses). The defaults take about 50 min alone on 2 CPU cores for 1,000 demos (~19,000
+iterations).
 """
 import argparse
 import contextlib
@@ -53,8 +57,12 @@ class TrainConfig:
     """checkpoint to write; CKPT.last.pt and CKPT.csv go beside it"""
     variant: str = "st"
     """st (Skill Transformer), no_skill, lstm, dt or dt_skill"""
-    context: int = 30
-    """context length C in steps (Sec. 4.1)"""
+    context: int = 15
+    """context length C in steps (Sec. 4.1: 30; 15 solved more here, EXPERIMENTS.md R20)"""
+    memory: int = 12
+    """older steps read as state-only memory tokens before the window (model.ModelConfig; 0: none)"""
+    memory_stride: int = 40
+    """steps between memory tokens"""
     d_model: int = 128
     """transformer width; the visual and state embeddings get half each (paper: 512)"""
     near_scale: float = 0.1
@@ -65,8 +73,8 @@ class TrainConfig:
     """attention heads"""
     dropout: float = 0.0
     """dropout in the transformers; off: on a CPU it costs ~15% of a step"""
-    epochs: int = 150
-    """epochs of demos_per_epoch demos: 12 passes over 1,000 demos (the paper's schedule: ~6)"""
+    epochs: int = 300
+    """epochs of demos_per_epoch demos: 24 passes over 1,000 demos (150 solved 9 points less, R28, R29)"""
     warmup_epochs: int = 20
     """epochs of linear warm-up from lr_start to lr (Appendix A: 200 of 750 epochs)"""
     demos_per_epoch: int = 80
@@ -74,7 +82,7 @@ class TrainConfig:
     batch_size: int = 64
     """windows per optimizer step (summed over DDP ranks); 64 keeps both CPU cores busy"""
     lr: float = 5e-4
-    """peak learning rate; the paper's 6e-5 (Appendix A) suits far more updates than our ~6,000"""
+    """peak learning rate; the paper's 6e-5 (Appendix A) suits far more updates than our ~19,000"""
     lr_start: float = 1e-8
     """learning rate at the start of the warm-up (Appendix A)"""
     weight_decay: float = 0.1
@@ -90,6 +98,8 @@ class TrainConfig:
     skill, aux, arm, base, grip were 2-4, 5-9, 0.2-0.9, 0.7-2.7, 0.1-0.2: at 1 they swamp the actions"""
     aux_weight: float = 0.1
     """weight of the auxiliary receptacle loss (Eq. 3) in the sum (the paper's: 1); see skill_weight"""
+    open_weight: float = 0.1
+    """weight of the auxiliary loss on how open the target's and the goal's receptacles are"""
     grad_clip: float = 1.0
     """clip the gradient norm to this (0: off)"""
     seed: int = 0
@@ -104,9 +114,12 @@ class TrainConfig:
     steps the demos label with it, an epoch drawing the runs of demos_per_epoch demos: the five
     together take one run's budget; evaluate.py --policy modular:fixed:STEM sequences them"""
     resume: bool = False
-    """continue from CKPT.last.pt (same model, same data env config)"""
+    """continue from CKPT.last.pt (same model, same data env config); without one, start fresh"""
     log_interval: int = 10
-    """iterations between log lines and CSV rows (mean losses; gradient norms of the last)"""
+    """iterations between log lines and CSV rows (mean losses)"""
+    grad_norms: bool = False
+    """also log each loss term's gradient norm on the shared encoder (five more backward passes per
+    log line; how the loss weights were chosen, EXPERIMENTS.md R4)"""
     device: str = "auto"
     """auto (cuda if available), cpu or cuda"""
     threads: int = 0
@@ -116,7 +129,7 @@ class TrainConfig:
     of --data, with the true and with the predicted skills as z"""
 
 
-LOSS_TERMS = ("loss", "skill", "aux", "arm", "base", "grip")
+LOSS_TERMS = ("loss", "skill", "aux", "open", "arm", "base", "grip")
 GRAD_COLUMNS = tuple(f"grad_{k}" for k in LOSS_TERMS[1:])   # each term's gradient norm on the encoder
 CSV_FIELDS = ("epoch", "iter", "lr") + LOSS_TERMS + GRAD_COLUMNS + ("ms_iter", "samples_s")
 
@@ -145,18 +158,24 @@ def load_meta(data_dir):
             meta = json.load(f)
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e})") from e
+    if meta.get("format") != collect.FORMAT_VERSION:
+        raise ValueError(f"{path}: data format {meta.get('format')!r}, this code reads format "
+                         f"{collect.FORMAT_VERSION}: collect the demos again")
+    mode = meta.get("env_config", {}).get("obs")
+    if mode not in env.OBS_MODES:
+        raise ValueError(f"{path}: env_config.obs is {mode!r}, expected one of {env.OBS_MODES}")
     expect = json.loads(json.dumps({"skills": env.SKILLS, "receptacles": env.RECEPTACLES,
-                                    "state_layout": env.STATE_LAYOUT}))   # tuples -> lists, as on disk
+                                    "state_layout": env.state_layout(mode)}))   # tuples -> lists, as on disk
     for key, want in expect.items():
         if meta.get(key) != want:
             raise ValueError(f"{path}: {key} is {meta.get(key)!r}, this code expects {want!r}")
     return meta
 
 
-def load_episode(path, size):
+def load_episode(path, size, state_dim):
     """One demo .npz, checked by collect.load_episode -> dict of its step arrays, plus prev_action
     (a_{t-1}) and rtg (return-to-go)."""
-    data = collect.load_episode(path)
+    data = collect.load_episode(path, state_dim)
     if data["depth"].shape[1:] != (size, size):
         raise ValueError(f"{path}: depth has shape {data['depth'].shape}, expected (T, {size}, {size})")
     ep = {k: data[k] for k in collect.STEP_ARRAYS}
@@ -230,7 +249,8 @@ def load_demos(data, max_demos=0):
     for d, m in zip(dirs, metas):
         diff = dict_diff(m["env_config"], meta["env_config"])
         if diff:
-            raise ValueError(f"{d}/meta.json: env_config differs from {dirs[0]}/meta.json in {diff}")
+            raise ValueError(f"{d}/meta.json: env_config differs from {dirs[0]}/meta.json in "
+                             + ", ".join(f"{k} ({m['env_config'].get(k)!r} vs {meta['env_config'].get(k)!r})" for k in diff))
         found = sorted(glob.glob(os.path.join(d, "ep_*.npz")))
         if not found:
             raise ValueError(f"no ep_*.npz files in {d!r}")
@@ -238,7 +258,8 @@ def load_demos(data, max_demos=0):
     if max_demos:
         files = files[:max_demos]
     size = int(meta["env_config"]["depth_size"])
-    return [load_episode(f, size) for f in files], meta
+    state_dim = sum(n for _, n in meta["state_layout"])
+    return [load_episode(f, size, state_dim) for f in files], meta
 
 
 def epoch_windows(lengths, cfg, epoch, per_epoch=0):
@@ -259,7 +280,7 @@ def every_step(lengths, demos):
     return np.concatenate([np.stack([np.full(lengths[i], i), np.arange(lengths[i])], 1) for i in demos])
 
 
-BATCH_KEYS = ("depth", "state", "action", "prev_action", "skill", "receptacle", "rtg")
+BATCH_KEYS = ("depth", "state", "action", "prev_action", "skill", "receptacle", "receptacle_open", "rtg")
 
 
 def flatten_demos(demos, device):
@@ -272,18 +293,27 @@ def flatten_demos(demos, device):
     return flat, torch.as_tensor(starts, device=device)
 
 
-def get_batch(flat, starts, windows, C):
-    """Windows (B, 2) of (demo, end step) -> batch of (B, C, ...) tensors. A window that would start
-    before step 0 is left-padded with zeros; mask marks the real steps, and padding is left out of
-    every loss."""
+def get_batch(flat, starts, windows, C, memory=0, stride=1):
+    """Windows (B, 2) of (demo, end step) -> batch of (B, C, ...) tensors, and the states of the
+    `memory` steps at `stride` before each window (mem_state (B, M, S), oldest first: what a
+    rollout's Policy keeps). A window that would start before step 0 is left-padded with zeros;
+    mask (mem_mask) marks the real steps, and padding is left out of every loss."""
     windows = torch.as_tensor(windows, device=starts.device)
-    t = windows[:, 1:] + torch.arange(1 - C, 1, device=starts.device)   # (B, C) steps of the demo
-    mask = t >= 0
-    idx = starts[windows[:, 0]][:, None] + t.clamp(min=0)               # (B, C) rows of flat
-    batch = {k: flat[k][idx] * mask.view(*mask.shape, *[1] * (flat[k].dim() - 1)) for k in BATCH_KEYS}
+    first = starts[windows[:, 0]][:, None]                              # (B, 1) row of each demo's step 0
+
+    def gather(keys, t):                                                # t (B, L) steps of the demo
+        mask = t >= 0
+        idx = first + t.clamp(min=0)
+        return {k: flat[k][idx] * mask.view(*mask.shape, *[1] * (flat[k].dim() - 1)) for k in keys}, mask
+
+    batch, mask = gather(BATCH_KEYS, windows[:, 1:] + torch.arange(1 - C, 1, device=starts.device))
     B, S = mask.shape[0], flat["depth"].shape[-1]
     batch["depth"] = batch["depth"].float().div_(255.0).view(B, C, 1, S, S)  # (B, T, 1, H, W) in [0, 1]
     batch["mask"] = mask
+    if memory:
+        back = torch.arange(memory, 0, -1, device=starts.device) * stride      # M x stride, ..., stride
+        mem, batch["mem_mask"] = gather(("state",), windows[:, 1:] + 1 - C - back)
+        batch["mem_state"] = mem["state"]
     return batch
 
 
@@ -309,9 +339,45 @@ def stem(path):
 
 
 def save_atomic(obj, path):
+    """torch.save to a temporary file, flushed to disk, then renamed: a kill leaves the old file or
+    the new one, never half of one."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
-    torch.save(obj, tmp)
+    with open(tmp, "wb") as f:
+        torch.save(obj, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def rng_states():
+    """Every random generator a training step may draw from (scheduled sampling and dropout draw from
+    torch's), in a form torch.load(weights_only=True) reads back."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    return {"torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+            "numpy": (kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached),
+            "python": random.getstate()}
+
+
+def set_rng_states(s):
+    torch.set_rng_state(s["torch"])
+    if s["cuda"] and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(s["cuda"])
+    kind, keys, pos, has_gauss, cached = s["numpy"]
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    random.setstate(s["python"])
+
+
+def truncate_csv(path, iter_num):
+    """Drop the log rows written after the checkpoint a resumed run restarts from (it writes them again)."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, CSV_FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(r for r in rows if r.get("iter", "").isdigit() and int(r["iter"]) <= iter_num)
     os.replace(tmp, path)
 
 
@@ -388,17 +454,24 @@ def train(cfg):
         f"depth {demos[0]['depth'].shape[1]}px from {cfg.data} in {time.time() - t0:.1f} s")
 
     # model
-    margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]), context=cfg.context,
+    margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]),
+                              state_layout=tuple((k, n) for k, n in meta["state_layout"]),
+                              n_skills=len(env.SKILLS), n_receptacles=len(env.RECEPTACLES) + 1,
+                              context=cfg.context, memory=cfg.memory, memory_stride=cfg.memory_stride,
                               d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
                               d_model=cfg.d_model, near_scale=cfg.near_scale, n_layer=cfg.n_layer,
                               n_head=cfg.n_head, dropout=cfg.dropout, variant=cfg.variant,
                               prev_action=cfg.prev_action, skill_sample=cfg.skill_sample)
     last_path, csv_path = stem(cfg.out) + ".last.pt", stem(cfg.out) + ".csv"
     ckpt, start_epoch, iter_num = None, 0, 0
-    if cfg.resume:
+    if cfg.resume and not os.path.isfile(last_path):
+        log(f"--resume: no {last_path} yet, starting fresh")
+    elif cfg.resume:
         ckpt = model.load_checkpoint(last_path)
         check_env_config(ckpt, meta, last_path, cfg.data)
         check_model_args(ckpt, margs, last_path)
+        if ckpt["config"].get("seed") != cfg.seed:
+            raise ValueError(f"{last_path} was trained with --seed {ckpt['config'].get('seed')}, not {cfg.seed}")
         start_epoch, iter_num = ckpt["epoch"], ckpt["iter_num"]
         log(f"resuming {last_path} at epoch {start_epoch}")
     net = model.SkillTransformer(margs)
@@ -421,22 +494,27 @@ def train(cfg):
     opt = torch.optim.AdamW(groups, lr=cfg.lr_start, betas=(0.9, 0.95))
     if ckpt is not None:
         opt.load_state_dict(ckpt["optimizer"])
+        set_rng_states(ckpt["rng"][rank])   # the generators as they stood at the end of that epoch
     raw = net
     if ddp:
         net = DDP(net, device_ids=[local_rank] if device.type == "cuda" else None)
 
-    def checkpoint(epoch, resumable=True):
-        # The optimizer state (2/3 of the bytes) goes only into CKPT.last.pt, which --resume reads.
+    def checkpoint(epoch, rng=None):
+        # The optimizer and generator states (2/3 of the bytes) go only into CKPT.last.pt, which
+        # --resume reads: with them the resumed run takes the very steps the uninterrupted one takes.
         return {"model": {k: v.cpu() for k, v in raw.state_dict().items()},  # loads without a GPU
-                "optimizer": opt.state_dict() if resumable else None,
+                "optimizer": opt.state_dict() if rng else None, "rng": rng,
                 "model_args": asdict(margs),
                 "config": asdict(cfg), "epoch": epoch, "iter_num": iter_num, "env_config": meta["env_config"],
                 "rtg_max": stats["rtg_max"], "n_demos": n_demos,
                 "skills": list(env.SKILLS)}
 
-    encoder = raw.encoder_parameters()
+    # each term's gradient on the encoder that all terms train (R4), with --grad-norms only
+    encoder = [p for m in (raw.vis, raw.state_mlp, raw.tok_proj) for p in m.parameters()]
     if master:
-        new_csv = not (cfg.resume and os.path.exists(csv_path))
+        new_csv = ckpt is None or not os.path.exists(csv_path)
+        if not new_csv:
+            truncate_csv(csv_path, iter_num)
         os.makedirs(os.path.dirname(os.path.abspath(csv_path)), exist_ok=True)
         csv_file = open(csv_path, "w" if new_csv else "a", newline="")
         writer = csv.DictWriter(csv_file, CSV_FIELDS)
@@ -457,12 +535,13 @@ def train(cfg):
             for g in opt.param_groups:
                 g["lr"] = lr
             mine = windows[it * cfg.batch_size + rank * B:it * cfg.batch_size + (rank + 1) * B]
-            batch = get_batch(flat, starts, mine, cfg.context)
+            batch = get_batch(flat, starts, mine, cfg.context, cfg.memory, cfg.memory_stride)
             with autocast:
                 out = net(batch)
-            losses = raw.compute_loss(out, batch, cfg.skill_weight, cfg.aux_weight)
+            losses = raw.compute_loss(out, batch, cfg.skill_weight, cfg.aux_weight, cfg.open_weight)
             logging = master and ((iter_num + 1) % cfg.log_interval == 0 or it == iters - 1)
-            if logging:  # each term's (unweighted) gradient on the encoder that all terms train
+            grads = {}
+            if logging and cfg.grad_norms:  # each term's (unweighted) gradient on the shared encoder
                 grads = {f"grad_{k}": grad_norm(losses[k], encoder) for k in LOSS_TERMS[1:] if k in losses}
             opt.zero_grad(set_to_none=True)
             losses["loss"].backward()
@@ -484,21 +563,24 @@ def train(cfg):
                 writer.writerow(row)
                 csv_file.flush()
                 terms = " ".join(f"{k} {sums[k] / n_sum:.4f}" for k in LOSS_TERMS[1:] if k in sums)
-                gnorms = " ".join(f"{k[5:]} {v:.3f}" for k, v in grads.items())
-                log(f"[{epoch + 1:3d}/{cfg.epochs} {it + 1:4d}/{iters}] loss {row['loss']:.4f} ({terms}) "
-                    f"grad ({gnorms}) lr {lr:.2e} | {dt * 1e3:.0f} ms/iter, {row['samples_s']:.1f} samples/s, "
-                    f"eta {eta / 60:.1f} min")
+                gnorms = " grad " + " ".join(f"{k[5:]} {v:.3f}" for k, v in grads.items()) if grads else ""
+                log(f"[{epoch + 1:3d}/{cfg.epochs} {it + 1:4d}/{iters}] loss {row['loss']:.4f} ({terms}){gnorms} "
+                    f"lr {lr:.2e} | {dt * 1e3:.0f} ms/iter, eta {eta / 60:.1f} min")
                 sums, n_sum, t_int = {}, 0, time.time()
 
-        # end of epoch: rank 0 saves CKPT.last.pt, which --resume reads
+        # end of epoch: rank 0 saves CKPT.last.pt, which --resume reads, with every rank's generators
+        rng = [rng_states()]
+        if ddp:
+            rng = [None] * world
+            dist.all_gather_object(rng, rng_states())
         if master:
-            save_atomic(checkpoint(epoch + 1), last_path)
+            save_atomic(checkpoint(epoch + 1, rng), last_path)
         if ddp:
             dist.barrier()
         t_int = time.time()  # saving does not count as iteration time
 
     if master:
-        save_atomic(checkpoint(cfg.epochs, resumable=False), cfg.out)   # the last model, not a "best"
+        save_atomic(checkpoint(cfg.epochs), cfg.out)   # the last model, not a "best"
         csv_file.close()
         log(f"done in {(time.time() - t_start) / 60:.1f} min: {cfg.out}")
     if ddp:
@@ -526,16 +608,17 @@ def validate(cfg):
         net = model.model_from_checkpoint(ckpt).eval()
         per = {}  # metric -> per-step values, in the order of ends
         for i in range(0, len(ends), 512):
-            b = get_batch(flat, starts, ends[i:i + 512], net.cfg.context)
+            b = get_batch(flat, starts, ends[i:i + 512], net.cfg.context, net.cfg.memory, net.cfg.memory_stride)
             x = net.embed_obs(b["depth"], b["state"])
+            mem = {"mem": net.embed_memory(b["mem_state"]), "mem_mask": b["mem_mask"]} if net.cfg.memory else {}
             label, act = b["skill"][:, -1], b["action"][:, -1]
             z, m = {"": b["skill"]}, {}   # arm etc.: z = the true skills (or no z); arm_zpred etc.: predicted
             if net.has_skill_module:
-                z["_zpred"] = net.infer_skill(x, b["mask"])[0].argmax(-1)
+                z["_zpred"] = net.infer_skill(x, b["mask"], **mem)[0].argmax(-1)
                 m["skill_acc"] = (z["_zpred"][:, -1] == label).float()
             for name, zz in z.items():
                 o = {k: v[:, -1] for k, v in net.infer_action(x, b["prev_action"], b["mask"], skill=zz,
-                                                              rtg=b["rtg"]).items()}
+                                                              rtg=b["rtg"], **mem).items()}
                 m[f"arm{name}"] = ((o["arm"] - act[:, env.ARM]) ** 2).mean(-1)
                 m[f"base{name}"] = ((o["base"] - act[:, env.BASE]) ** 2).mean(-1)
                 m[f"grip_acc{name}"] = (o["grip_logits"].argmax(-1) == act[:, env.GRIP].round() + 1).float()
