@@ -152,6 +152,7 @@ FRIDGE_SIZE = (0.6, 0.6, 1.5)     # a narrow door: its handle's arc stays within
 FRIDGE_SHELF = 0.65               # height of the shelf top inside the fridge: 10 cm under the lower
                                   # table, so the goal's height tells a fridge goal from a table's (R38)
 DOOR_RANGE = 1.75                 # rad the fridge door swings open
+DOOR_HALF = 0.015                 # m: half the door's thickness; its hinge axis stands this far before the face
 
 
 def _local_to_world(f, p):
@@ -411,7 +412,7 @@ def build_spec(layout):
                               objtype=mujoco.mjtObj.mjOBJ_BODY, name1="ee", name2=f"obj_{k}")
         e.data[0:3] = [0, 0, 0]                       # the spec default anchor is (0, 1, 0)
         e.active = False
-        e.solimp = [0.99, 0.999, 0.001, 0.5, 2]       # stiff carry (mujoco4.md Sec. 4)
+        e.solimp = [0.99, 0.999, 0.001, 0.5, 2]       # a stiff weld: the carried object does not sag
     for rec in RECEPTACLES:                           # handles: a ball joint, so the door can turn
         e = spec.add_equality(name=f"suction_{rec}", type=mujoco.mjtEq.mjEQ_CONNECT,
                               objtype=mujoco.mjtObj.mjOBJ_BODY, name1="ee", name2=rec)
@@ -451,10 +452,10 @@ def _build_fridge(body, dx, dy, h):
     _box(body, "fridge_base", (0, 0, 0.05), (dx, dy, 0.05), col)
     _box(body, "fridge_shelf", (0, 0, FRIDGE_SHELF - 0.01), (dx - 0.02, dy - 0.04, 0.01), col)
     _box(body, "fridge_shelf2", (0, 0, 1.15), (dx - 0.02, dy - 0.04, 0.01), col)
-    door = body.add_body(name="fridge", pos=[dx + 0.015, -dy, 0])       # hinge on the right edge
+    door = body.add_body(name="fridge", pos=[dx + DOOR_HALF, -dy, 0])   # hinge on the right edge
     door.add_joint(name="fridge_hinge", type=JT.mjJNT_HINGE, axis=[0, 0, -1], range=[0, DOOR_RANGE],
                    damping=5.0, frictionloss=5.0)   # stays where it is left
-    _box(door, "fridge_door", (0, dy, h / 2), (0.015, dy, h / 2 - 0.01), col, mass=3.0)
+    _box(door, "fridge_door", (0, dy, h / 2), (DOOR_HALF, dy, h / 2 - 0.01), col, mass=3.0)
     door.add_geom(name="fridge_handle", type=G.mjGEOM_CAPSULE, fromto=[0.06, 2 * dy - 0.08, 0.85, 0.06, 2 * dy - 0.08, 1.15],
                   size=[0.015, 0, 0], rgba=[0.2, 0.2, 0.2, 1], mass=0.1)
     door.add_site(name="fridge_handle_site", pos=[0.06, 2 * dy - 0.08, 1.0], size=[0.01, 0, 0])
@@ -973,6 +974,45 @@ class RearrangeEnv:
                 "reward_terms": terms, "picked": self._picked,
                 "holding": self._held >= 0, "perturbed": self._perturbed, "contact_force": float(force),
                 "steps": self._steps}
+
+
+# --- Gymnasium ---
+
+def gym_env(**config):
+    """RearrangeEnv as a gymnasium.Env, with observation_space and action_space, for the tools written
+    for Gymnasium (it passes gymnasium.utils.env_checker.check_env). Gymnasium is imported here: the
+    stages above do not need it. The grip, a Box coordinate there, is rounded to release, keep or
+    grasp; reset(options={"episode": Episode}) picks the episode, as RearrangeEnv.reset does."""
+    import gymnasium
+    from gymnasium import spaces
+
+    class GymRearrangeEnv(gymnasium.Env):
+        metadata = {"render_modes": []}
+
+        def __init__(self):
+            self.env = RearrangeEnv(**config)
+            n, room = self.env.config.depth_size, 10.0           # m: more than any room's diagonal
+            polar = (np.array([0.0, -1, -1]), np.array([room, 1, 1]))
+            # the measured joints pass their limits by a few hundredths of a radian (soft limits)
+            bounds = {"joint": ARM_RANGE.T + [[-0.1], [0.1]], "joint_target": ARM_RANGE.T, "is_holding": (0.0, 1.0),
+                      "ee_rest": (-2.0, 2.0), "obj_start": (-room, room), "goal": (-room, room),
+                      "obj_start_polar": polar, "goal_polar": polar, "receptacle_open": (0.0, 1.0)}
+            box = lambda lo, hi, size: spaces.Box(np.broadcast_to(lo, (size,)).astype(np.float32),
+                                                  np.broadcast_to(hi, (size,)).astype(np.float32), (size,), np.float32)
+            self.observation_space = spaces.Dict({"depth": spaces.Box(0.0, 1.0, (n, n, 1), np.float32),
+                                                  **{k: box(*bounds[k], size) for k, size in self.env.state_layout}})
+            self.action_space = spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32)
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            return self.env.reset(seed=seed, options=options)
+
+        def step(self, action):
+            a = np.array(action, np.float32)
+            a[GRIP] = GRIP_VALUES[int(np.argmin([abs(a[GRIP] - g) for g in GRIP_VALUES]))]
+            return self.env.step(a)
+
+    return GymRearrangeEnv()
 
 
 # --- command line: benchmark, viewer, MJCF export ---

@@ -87,6 +87,10 @@ class Config:
     """directory for a few rollouts written as PNG frames (empty: no video)"""
     video_episodes: int = 2
     """episodes per method written to --video"""
+    picture: str = ""
+    """draw the first --policy solving the first hard or very hard episode of the list it solves to this
+    PNG: its path from above coloured by its predicted skill, beside frames where the skill changes
+    (matplotlib; MUJOCO_GL=egl for RGB frames, else head depth); no tables"""
     log_every: float = 10.0
     """seconds between progress lines"""
     plot: str = ""
@@ -525,6 +529,88 @@ def rgb_renderer(e, size=240):
     return render, None
 
 
+SKILL_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+
+
+def record_rollout(policy, e, episode, seed, min_run=10):
+    """One episode, per step the base pose and the predicted skill, and a frame (RGB where OpenGL works,
+    else the head depth) at the first step and wherever a new skill starts that lasts min_run steps
+    -> (success, poses (T, 3), skills (T,), [(step, skill, frame)])."""
+    obs, info = e.reset(seed=seed, options={"episode": episode})
+    render = rgb_renderer(e)[0]                 # after the reset: a renderer belongs to the layout's model
+    policy.reset()
+    poses, skills, frames, reward, done = [], [], {}, 0.0, False
+    while not done:
+        actions, z = policy.act_batch([obs], [reward])
+        poses.append(e.privileged()["base"])
+        skills.append(int(z[0]))
+        t = len(skills) - 1
+        if t == 0 or skills[-1] != skills[t - 1]:
+            frames[t] = render() if render else env.depth_to_uint8(obs["depth"])
+        obs, reward, terminated, truncated, info = e.step(actions[0])
+        done = terminated or truncated
+    skills = np.array(skills)
+    keep = [t for t in sorted(frames) if t == 0 or (skills[t:t + min_run] == skills[t]).all()]
+    return info["success"], np.array(poses), skills, [(t, skills[t], frames[t]) for t in keep]
+
+
+def draw_picture(cfg, method, path):
+    """The README's picture (see Config.picture)."""
+    plt = pyplot()
+    from matplotlib.collections import LineCollection
+    from matplotlib.patches import Polygon
+    ref, env_config = method["members"][0]
+    policy, (e,) = actor(ref, env_config)
+    split = "unseen" if cfg.split == "both" else cfg.split
+    tried = 0
+    for ep in eval_episodes(split, cfg.episodes, False, episode_seed=cfg.episode_seed):
+        if ep.difficulty == "easy":
+            continue
+        tried += 1
+        success, poses, skills, frames = record_rollout(policy, e, ep, reset_seed(split, ep.index, 0, cfg.episode_seed))
+        if success:
+            break
+    else:
+        raise ValueError(f"--picture: {method['name']} solved none of the {tried} hard or very hard episodes among "
+                         f"the first {cfg.episodes} {split} ones")
+    frames = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(6, len(frames))).round().astype(int))]
+    fig = plt.figure(figsize=(13, 6))
+    grid = fig.add_gridspec(2, 5, width_ratios=[1.6, 1.6, 1, 1, 1])
+    ax = fig.add_subplot(grid[:, :2])
+    layout = e.layout
+    ax.add_patch(Polygon([(0, 0), (layout.room[0], 0), layout.room, (0, layout.room[1])], fill=False, lw=2))
+    opened = [r for r, frac in enumerate(e.open_fraction()) if frac > env.OPEN_FRACTION]
+    for f in layout.furniture:
+        corners = [env._local_to_world(f, (sx * f.size[0] / 2, sy * f.size[1] / 2)) for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))]
+        held = [env.RECEPTACLES[r].replace("_", " ") for r in opened
+                if (env.RECEPTACLES[r] == "fridge") == (f.kind == "fridge") and f.kind in ("cabinet", "fridge")]
+        ax.add_patch(Polygon(corners, color="tab:red" if held else "0.75", alpha=0.5))
+        ax.text(*f.center, f.name.replace("_", " ") + "".join(f"\n({h} opened)" for h in held), ha="center",
+                va="center", fontsize=8)
+    segments = np.stack([poses[:-1, :2], poses[1:, :2]], 1)
+    ax.add_collection(LineCollection(segments, colors=[SKILL_COLORS[z] for z in skills[:-1]], lw=2.5))
+    ax.plot(*poses[0, :2], "k^", ms=9, label="robot start")
+    ax.plot(*ep.objects[ep.target][:2], "r*", ms=14, label="target start")
+    ax.plot(*ep.goal[:2], "gX", ms=12, label="goal")
+    for z, name in enumerate(env.SKILLS):
+        ax.plot([], [], color=SKILL_COLORS[z], lw=3, label=name)
+    ax.set(xlim=(-0.2, layout.room[0] + 0.2), ylim=(-0.2, layout.room[1] + 0.2), aspect="equal", xticks=[], yticks=[])
+    ax.legend(loc="upper left", bbox_to_anchor=(0, -0.01), ncol=4, fontsize=8, frameon=False)
+    ax.set_title(f"{method['name']}: {split} episode {ep.index} ({ep.kind.replace('_', ' ')}), solved in {len(skills)} steps",
+                 fontsize=10)
+    for i, (t, z, frame) in enumerate(frames):
+        fa = fig.add_subplot(grid[i // 3, 2 + i % 3])
+        fa.imshow(frame, cmap="gray")
+        fa.set(xticks=[], yticks=[])
+        fa.set_title(f"step {t}: {env.SKILLS[z]}", fontsize=9, color=SKILL_COLORS[z])
+    fig.tight_layout()
+    tmp = path + ".tmp"
+    fig.savefig(tmp, format="png", dpi=100)
+    os.replace(tmp, path)
+    plt.close(fig)
+    print(f"wrote {path}: {split} episode {ep.index}, the first solved of {tried} hard or very hard tried", flush=True)
+
+
 def write_videos(cfg, methods, split):
     """A few rollouts per method as PNG frames: RGB where OpenGL works, else the head depth camera."""
     for m in methods:
@@ -696,6 +782,13 @@ if __name__ == "__main__":
     try:
         if cfg.plot:
             pyplot()                            # fail now, not after an hour of rollouts
+        if cfg.picture:
+            if not cfg.policy:
+                raise ValueError("--picture needs a --policy")
+            pyplot()
+            init_worker()
+            draw_picture(cfg, parse_method(cfg.policy[0], cfg), cfg.picture)
+            sys.exit(0)
         if cfg.plot and not cfg.policy:         # redraw from an earlier run
             with open(cfg.out) as f:
                 results = json.load(f)

@@ -68,6 +68,18 @@ PLACE_TOL = 0.03            # m: the place releases at the latest this near its 
 DROP_XY = 0.08              # ... or with the object this near the goal horizontally and low over it
 LIFT = 0.03                 # m: a held object is lifted (and drawn in) until this much air is under it
 DONE_DIST = 0.12            # m: the target this near the goal and not held: the place is done
+# base feedback gains (actions are divided by the env's lin_speed and ang_speed)
+TURN_GAIN = 3.0             # rad/s of turn per rad of heading error, settling on or holding a pose
+ALONG_GAIN = 3.0            # m/s per m of distance error along the heading
+SETTLE_TURN, SETTLE_SPEED = 0.6, 0.4   # action limits while settling at reach or holding a work pose
+SETTLE_FACING = 0.3         # rad: the base closes the distance only when it faces the point this well
+HOLD_TURN, HOLD_SPEED = 0.5, 0.3       # action limits while the arm works a handle from a pose
+NAV_TURN_GAIN = 4.0         # navigation: turn per rad of error toward the look-ahead point
+NAV_FACING = 0.5            # rad: it drives forward only when it faces the look-ahead point this well
+NAV_SPEED_GAIN = 2.0        # m/s per m to the goal, between NAV_MIN_SPEED and full speed
+NAV_MIN_SPEED = 0.1
+BACK_OFF = 0.3              # m/s: away from a contact, pulling a drawer, or off the fridge door
+FOLD_ROOM = 1.15            # m: the base backs off to this far from the fridge's face before the fold
 DOWN = np.array([0.0, 0.0, -1.0])
 PLANS = ("oracle", "fixed", "tpsrl")
 
@@ -200,7 +212,10 @@ class Expert:
     def _closed(self, r):
         return self.p["open_fraction"][r] < NEED_OPEN
 
+    # Public: collect.py's events and evaluate.py's BC-Modular planner ask these of the state too.
+
     def open_skill(self, r):
+        """The skill that opens RECEPTACLES[r]: open_fridge or open_drawer."""
         return "open_fridge" if env.RECEPTACLES[r] == "fridge" else "open_drawer"
 
     def _stow_skill(self):
@@ -271,7 +286,7 @@ class Expert:
                 and abs(np.linalg.norm(to) - self._reach(place)) < WORK_DIST)
 
     def at_pose(self, pose):
-        """Near an opening pose."""
+        """Near an opening pose (x, y, yaw), within OPEN_XY and OPEN_YAW."""
         x, y, yaw = self.p["base"]
         return np.hypot(pose[0] - x, pose[1] - y) < OPEN_XY and abs(_wrap(pose[2] - yaw)) < OPEN_YAW
 
@@ -383,7 +398,7 @@ class Expert:
         f = self.fur["fridge"]
         n, lat, face = self._frame(f)
         th = p["open_fraction"][r] * env.DOOR_RANGE
-        hinge = face + n * 0.015 - lat * f.size[1] / 2
+        hinge = face + n * env.DOOR_HALF - lat * f.size[1] / 2
         along = n * np.sin(th) + lat * np.cos(th)                # the panel, hinge to free edge
         out = n * np.cos(th) - lat * np.sin(th)                  # the panel's outer normal
         ee = p["ee"]
@@ -397,21 +412,27 @@ class Expert:
         if h > -0.2:
             return at(width + 0.2, -0.25)
         x, y, _ = p["base"]
-        if (np.array([x, y]) - face) @ n < 1.15:                 # room to fold: back the base off
-            return (-0.3 / self.env.config.lin_speed, 0.0)
+        if (np.array([x, y]) - face) @ n < FOLD_ROOM:            # room to fold: back the base off
+            return (-BACK_OFF / self.env.config.lin_speed, 0.0)
         return None
 
     # --- pick and place: a closed-loop reach from above ---
 
-    def _base_hold(self, point, place):
-        """Base label of a pick or place: keep facing the point at reach (the settle's feedback law)."""
+    def _face(self, point, reach):
+        """Base label (v, w) that turns to face the point and settles at `reach` from it: the end of a
+        navigation, and what holds a pick or place on its mark."""
         x, y, yaw = self.p["base"]
+        cfg = self.env.config
         to = np.asarray(point[:2]) - [x, y]
         err = _wrap(np.arctan2(to[1], to[0]) - yaw)
-        along = np.linalg.norm(to) - self._reach(place)
-        w = np.clip(3.0 * err / self.env.config.ang_speed, -0.6, 0.6)
-        v = 0.0 if abs(err) > 0.3 else np.clip(3 * along, -0.4, 0.4) / self.env.config.lin_speed
+        along = np.linalg.norm(to) - reach
+        w = np.clip(TURN_GAIN * err / cfg.ang_speed, -SETTLE_TURN, SETTLE_TURN)
+        v = 0.0 if abs(err) > SETTLE_FACING else np.clip(ALONG_GAIN * along, -SETTLE_SPEED, SETTLE_SPEED) / cfg.lin_speed
         return v, w
+
+    def _base_hold(self, point, place):
+        """Base label of a pick or place: keep facing the point at reach."""
+        return self._face(point, self._reach(place))
 
     def _reach_step(self, place, pt, grip, zone, base):
         """One step of the reach toward pt: every step aims FUNNEL_SLOPE x the horizontal error (at most
@@ -477,13 +498,13 @@ class Expert:
         if env.RECEPTACLES[r] != "fridge":
             if frac >= DRAWER_DONE:
                 return self._hold(grip=-1.0)
-            return self._hold(base=(-0.3 / self.env.config.lin_speed, 0.0))
+            return self._hold(base=(-BACK_OFF / self.env.config.lin_speed, 0.0))
         th = frac * env.DOOR_RANGE
         if th >= DOOR_DONE:
             return self._hold(grip=-1.0)
         f = self.fur["fridge"]
         n, lat, face = self._frame(f)
-        hinge = face + n * 0.015 - lat * f.size[1] / 2
+        hinge = face + n * env.DOOR_HALF - lat * f.size[1] / 2
         dth = min(DOOR_STEP, DOOR_TARGET + 0.05 - th)
         c, s = np.cos(dth), np.sin(dth)
         rel = p["ee"][:2] - hinge                                # the door turns from lat toward n
@@ -499,7 +520,8 @@ class Expert:
         x, y, yaw = self.p["base"]
         along = (np.asarray(pose[:2]) - [x, y]) @ [np.cos(yaw), np.sin(yaw)]
         cfg = self.env.config
-        return np.clip(3 * along, -0.3, 0.3) / cfg.lin_speed, np.clip(3.0 * _wrap(pose[2] - yaw) / cfg.ang_speed, -0.5, 0.5)
+        return (np.clip(ALONG_GAIN * along, -HOLD_SPEED, HOLD_SPEED) / cfg.lin_speed,
+                np.clip(TURN_GAIN * _wrap(pose[2] - yaw) / cfg.ang_speed, -HOLD_TURN, HOLD_TURN))
 
     # --- navigation: a distance field to the goal on the occupancy grid, pure pursuit down it ---
 
@@ -514,22 +536,16 @@ class Expert:
         touch = self._contact()
         if touch is not None:                    # pressed against the scene: back off from it
             ahead = (touch[:2] - pos) @ [np.cos(yaw), np.sin(yaw)] > 0
-            return self._arm_action(env.ARM_REST, (-0.3 if ahead else 0.3, 0.0))
+            return self._arm_action(env.ARM_REST, ((-BACK_OFF if ahead else BACK_OFF) / cfg.lin_speed, 0.0))
         if dist < ARRIVE:
             if face is None:
                 err = _wrap(pose[2] - yaw)
-                return self._arm_action(env.ARM_REST, (0.0, np.clip(3.0 * err / cfg.ang_speed, -0.6, 0.6)))
-            point, reach = face
-            to = np.asarray(point[:2]) - pos
-            err = _wrap(np.arctan2(to[1], to[0]) - yaw)
-            along = np.linalg.norm(to) - reach
-            w = np.clip(3.0 * err / cfg.ang_speed, -0.6, 0.6)
-            v = 0.0 if abs(err) > 0.3 else np.clip(3 * along, -0.4, 0.4) / cfg.lin_speed
-            return self._arm_action(env.ARM_REST, (v, w))
+                return self._arm_action(env.ARM_REST, (0.0, np.clip(TURN_GAIN * err / cfg.ang_speed, -SETTLE_TURN, SETTLE_TURN)))
+            return self._arm_action(env.ARM_REST, self._face(*face))
         aim = self._lookahead(pos, goal)
         err = _wrap(np.arctan2(aim[1] - y, aim[0] - x) - yaw)
-        w = np.clip(4.0 * err / cfg.ang_speed, -1, 1)
-        v = 0.0 if abs(err) > 0.5 else np.clip(2.0 * dist, 0.1, 1.0) * np.cos(err)
+        w = np.clip(NAV_TURN_GAIN * err / cfg.ang_speed, -1, 1)
+        v = 0.0 if abs(err) > NAV_FACING else np.clip(NAV_SPEED_GAIN * dist, NAV_MIN_SPEED, 1.0) * np.cos(err)
         return self._arm_action(env.ARM_REST, (v, w))
 
     def _contact(self):

@@ -92,6 +92,27 @@ def test_receptacle_open_labels_match_the_simulator():
     assert want[0].max() == 0 and want[:, 1].max() > expert.NEED_OPEN   # both start shut; the goal's is opened
 
 
+@pytest.mark.parametrize("mode", env.OBS_MODES)
+def test_gymnasium_env_passes_check_env(mode):
+    """env.gym_env: a gymnasium.Env whose spaces hold every observation of a random rollout; it passes
+    Gymnasium's own checker without a warning (Gymnasium is a test dependency, imported lazily)."""
+    import warnings
+    from gymnasium.utils.env_checker import check_env
+    g = env.gym_env(depth_size=DEPTH, max_steps=200, obs=mode)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(g, skip_render_check=True)
+    obs, _ = g.reset(seed=1)
+    assert set(g.observation_space.spaces) == {"depth"} | {k for k, _ in env.state_layout(mode)}
+    g.action_space.seed(0)
+    for _ in range(200):
+        assert g.observation_space.contains(obs)
+        obs, reward, terminated, truncated, info = g.step(g.action_space.sample())
+        if terminated or truncated:
+            break
+    assert truncated or terminated
+
+
 def test_joint_target_is_the_sum_of_arm_actions_and_the_joints_follow_it():
     e = env.RearrangeEnv(depth_size=8)
     obs, _ = e.reset(seed=0, options={"episode": env.make_episodes("train", 1)[0]})
@@ -1123,6 +1144,29 @@ def trained(tmp_path_factory):
 
 
 # --- model ---
+
+def test_model_stands_on_torch_and_numpy_alone():
+    """model.py can be copied without the simulator: with mujoco and env blocked from import it builds
+    every variant and computes a loss; `python model.py` runs its self-check. collect.py, an earlier
+    stage, imports without model.py (it needs it only for DAgger's --policy)."""
+    code = ("import sys; sys.modules['mujoco'] = sys.modules['env'] = None\n"
+            "import model\n"
+            "for v in model.VARIANTS:\n"
+            "    net = model.SkillTransformer(model.ModelConfig(variant=v, depth_size=16, memory=2, memory_stride=3))\n"
+            "    b = model.random_batch(net.cfg)\n"
+            "    assert float(net.compute_loss(net(b), b)['loss']) > 0\n"
+            "print('ok')")
+    assert run_script([sys.executable, "-c", code]).strip() == "ok"
+    out = run_script([sys.executable, "model.py"], timeout=300)
+    assert all(f"{v} " in out for v in model.VARIANTS) and "M parameters" in out
+    code = "import sys; sys.modules['model'] = sys.modules['torch'] = None\nimport collect\nprint('ok')"
+    assert run_script([sys.executable, "-c", code]).strip() == "ok"
+    # what model.py repeats of env.py, so that it stands alone, is the same
+    assert (model.ACTION_DIM, model.ARM, model.BASE, model.GRIP, model.GRIP_VALUES) == \
+        (env.ACTION_DIM, env.ARM, env.BASE, env.GRIP, env.GRIP_VALUES)
+    cfg = model.ModelConfig()
+    assert (cfg.state_layout, cfg.n_skills, cfg.n_receptacles) == (env.STATE_LAYOUT, len(env.SKILLS), len(env.RECEPTACLES) + 1)
+
 
 @pytest.mark.parametrize("variant", model.VARIANTS)
 def test_output_shapes(variant):
