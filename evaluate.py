@@ -20,7 +20,7 @@ interruption, the same command with --resume runs only the missing ones and writ
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --perturb  # Table 2 (Sec. 5.4)
     python evaluate.py --policy pretrained/st.pt --episode-seed 1            # a fresh test set
     python evaluate.py --policy modular:fixed:ckpt/bcm --policy modular:oracle:ckpt/bcm   # BC-Modular
-    python evaluate.py --policy expert:oracle --episodes 2 --video results/video
+    MUJOCO_GL=egl python evaluate.py --policy pretrained/st.pt --picture docs/robot.png  # the README's figure
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \\
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
 
@@ -38,10 +38,8 @@ import json
 import multiprocessing as mp
 import os
 import platform
-import struct
 import sys
 import time
-import zlib
 from dataclasses import dataclass, field
 
 import mujoco
@@ -83,10 +81,6 @@ class Config:
     """head camera resolution for the experts (checkpoints keep their own); 0 keeps the env default"""
     out: str = "results/eval.json"
     """JSON results; the Markdown tables go next to it with the suffix .md"""
-    video: str = ""
-    """directory for a few rollouts written as PNG frames (empty: no video)"""
-    video_episodes: int = 2
-    """episodes per method written to --video"""
     picture: str = ""
     """draw the first --policy solving the first hard or very hard episode of the list it solves to this
     PNG: its path from above coloured by its predicted skill, beside frames where the skill changes
@@ -158,7 +152,7 @@ def parse_method(spec, cfg):
             members.append((f"modular:{plan}:{stem}", dict(policy.env_config, **overrides)))
         variant = "bc_modular" + ("_oracle" if plan == "oracle" else "")
         return {"name": f"{variant} ({stems})", "spec": spec, "variant": variant, "members": members,
-                "setting": {"variant": variant, "context": policy.cfg.context,
+                "setting": {"variant": variant, "context": policy.cfg.context, "memory": policy.cfg.memory,
                             "n_demos": policy.train_config.get("n_demos"), "segments": "",
                             "epochs": policy.train_config.get("epochs")}}
     members, variants = [], set()
@@ -170,8 +164,8 @@ def parse_method(spec, cfg):
         raise ValueError(f"{spec}: checkpoints of different variants {sorted(variants)} in one row")
     variant = variants.pop()
     trained = policy.train_config              # the last member's: training seeds share the rest
-    setting = {"variant": variant, "context": policy.cfg.context, "n_demos": trained.get("n_demos"),
-               "segments": trained.get("segments") or "", "epochs": trained.get("epochs")}
+    setting = {"variant": variant, "context": policy.cfg.context, "memory": policy.cfg.memory,
+               "n_demos": trained.get("n_demos"), "segments": trained.get("segments") or "", "epochs": trained.get("epochs")}
     return {"name": f"{variant} ({spec})", "spec": spec, "variant": variant, "members": members,
             "setting": setting}
 
@@ -429,7 +423,7 @@ def markdown(results):
 
 # --- Fig. 3 ---
 
-FIG3 = (("variant", "architecture (Fig. 3a)"), ("context", "context length C (Fig. 3b)"),
+FIG3 = (("variant", "architecture (Fig. 3a)"), ("context", "context length C (Fig. 3b)"), ("memory", "memory tokens"),
         ("n_demos", "demonstrations (Fig. 3c)"), ("segments", "partial demonstrations (Sec. 5.5)"))
 
 
@@ -458,7 +452,7 @@ def pyplot():
         matplotlib.use("Agg")                   # no display: draw to a file
         import matplotlib.pyplot as plt
     except ImportError as err:
-        raise ValueError("--plot needs matplotlib (pip install matplotlib); the tables need nothing") from err
+        raise ValueError("--plot and --picture need matplotlib (pip install matplotlib); the tables need nothing") from err
     return plt
 
 
@@ -494,28 +488,17 @@ def plot_fig3(results, path):
     plt.close(fig)
 
 
-# --- video ---
-
-def write_png(path, image):
-    """Minimal PNG writer: (H, W) grayscale or (H, W, 3) RGB uint8, zlib only."""
-    image = np.ascontiguousarray(image, np.uint8)
-    h, w = image.shape[:2]
-    raw = b"".join(b"\x00" + image[y].tobytes() for y in range(h))   # filter type 0 per row
-
-    def chunk(tag, data):
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-    header = struct.pack(">IIBBBBB", w, h, 8, 0 if image.ndim == 2 else 2, 0, 0, 0)
-    with open(path, "wb") as f:
-        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw))
-                + chunk(b"IEND", b""))
-
+# --- the README figure: one rollout from above, and frames ---
 
 def rgb_renderer(e, size=240):
-    """A third-person RGB view that follows the robot, or None with the reason when OpenGL is missing."""
+    """A third-person RGB view that follows the robot, or None where OpenGL is missing (MUJOCO_GL=egl
+    gives it without a display)."""
+    if not (os.environ.get("MUJOCO_GL") or os.environ.get("DISPLAY")):
+        return None                             # GLFW, the default, needs a display
     try:
         renderer = mujoco.Renderer(e.model, size, size)
-    except Exception as err:  # no display and no EGL / OSMesa: mujoco raises several kinds
-        return None, f"{type(err).__name__}: {err}"
+    except Exception:  # no display and no EGL / OSMesa: mujoco raises several kinds
+        return None
     cam, option = mujoco.MjvCamera(), mujoco.MjvOption()
     cam.distance, cam.elevation = 3.0, -60.0
     option.geomgroup[:] = 1   # the robot's geoms are in a group the renderer hides by default
@@ -526,7 +509,7 @@ def rgb_renderer(e, size=240):
         cam.azimuth = np.degrees(yaw)   # from behind the robot, looking where it heads
         renderer.update_scene(e.data, camera=cam, scene_option=option)
         return renderer.render()
-    return render, None
+    return render
 
 
 SKILL_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
@@ -537,7 +520,7 @@ def record_rollout(policy, e, episode, seed, min_run=10):
     else the head depth) at the first step and wherever a new skill starts that lasts min_run steps
     -> (success, poses (T, 3), skills (T,), [(step, skill, frame)])."""
     obs, info = e.reset(seed=seed, options={"episode": episode})
-    render = rgb_renderer(e)[0]                 # after the reset: a renderer belongs to the layout's model
+    render = rgb_renderer(e)                    # after the reset: a renderer belongs to the layout's model
     policy.reset()
     poses, skills, frames, reward, done = [], [], {}, 0.0, False
     while not done:
@@ -608,28 +591,8 @@ def draw_picture(cfg, method, path):
     fig.savefig(tmp, format="png", dpi=100)
     os.replace(tmp, path)
     plt.close(fig)
-    print(f"wrote {path}: {split} episode {ep.index}, the first solved of {tried} hard or very hard tried", flush=True)
-
-
-def write_videos(cfg, methods, split):
-    """A few rollouts per method as PNG frames: RGB where OpenGL works, else the head depth camera."""
-    for m in methods:
-        ref, env_config = m["members"][0]
-        policy, envs = actor(ref, dict(env_config, perturb=cfg.perturb))
-        render, why = rgb_renderer(envs[0])
-        if render is None:
-            print(f"video: RGB rendering unavailable ({why}); run with MUJOCO_GL=egl (or osmesa) "
-                  f"for it. Writing the head depth camera instead.", flush=True)
-        for ep in eval_episodes(split, cfg.video_episodes, cfg.perturb, episode_seed=cfg.episode_seed):
-            folder = os.path.join(cfg.video, f"{m['variant']}_{split}_{ep.index:04d}")
-            os.makedirs(folder, exist_ok=True)
-            frames = []
-            grab = (lambda obs: frames.append(render())) if render else \
-                (lambda obs: frames.append(env.depth_to_uint8(obs["depth"])))
-            r = rollout(policy, envs, [ep], [reset_seed(split, ep.index, 0, cfg.episode_seed)], on_step=grab)[0]
-            for t, frame in enumerate(frames):
-                write_png(os.path.join(folder, f"{t:05d}.png"), frame)
-            print(f"video: {folder} ({len(frames)} frames, success {r['success']})", flush=True)
+    print(f"wrote {path}: {split} episode {ep.index}, the first solved of {tried} hard or very hard tried"
+          + ("" if frames[0][2].ndim == 3 else "; head depth frames (RGB needs OpenGL: MUJOCO_GL=egl)"), flush=True)
 
 
 # --- results files ---
@@ -756,8 +719,6 @@ def evaluate(cfg):
     results["markdown"] = markdown(results)
     write_atomic(cfg.out, json.dumps(results, indent=1))
     write_atomic(os.path.splitext(cfg.out)[0] + ".md", results["markdown"])
-    if cfg.video:
-        write_videos(cfg, methods, splits[0])
     return results
 
 

@@ -722,12 +722,8 @@ def test_evaluate_table1_experts(tmp_path):
 
 def test_evaluate_table2_perturb(tmp_path):
     out = tmp_path / "p.json"
-    p = run("evaluate.py", "--policy", "expert:oracle", "--policy", "expert:fixed", "--perturb", "--episodes", 1,
-            "--workers", 2, "--depth-size", DEPTH, "--out", out, "--video", tmp_path / "video", "--video-episodes", 1)
-    folders = sorted(os.listdir(tmp_path / "video"))                  # RGB with OpenGL, else depth frames
-    assert len(folders) == 2 and "video:" in p.stdout
-    frames = sorted(os.listdir(tmp_path / "video" / folders[0]))
-    assert len(frames) > 10 and (tmp_path / "video" / folders[0] / frames[0]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    run("evaluate.py", "--policy", "expert:oracle", "--policy", "expert:fixed", "--perturb", "--episodes", 1,
+        "--workers", 2, "--depth-size", DEPTH, "--out", out)
     md = (tmp_path / "p.md").read_text()
     header, rows = parse_markdown_table(md, "Table 2")
     assert header == ["Method", "Pick No Perturb", "Pick Perturb", "Skill Acc No Perturb", "Skill Acc Perturb"]
@@ -1040,15 +1036,17 @@ def test_spread_over_training_or_rollout_seeds():
 def test_fig3_panels_and_plot(tmp_path):
     """Each Fig. 3 panel is the reference run plus the runs that differ from it in that setting only."""
     def run_(name, **changes):
-        setting = dict(dict(variant="st", context=30, n_demos=1000, segments="", epochs=150), **changes)
+        setting = dict(dict(variant="st", context=30, memory=12, n_demos=1000, segments="", epochs=150), **changes)
         stat = {"mean": float(len(name)), "std": 0.0}
         return {"name": name, "setting": setting,
                 "results": {"unseen": {"no_perturb": {"success_all": stat, "picked": stat}}}}
     methods = [run_("ctx60", context=60), run_("ref"), run_("ctx15", context=15), run_("n250", n_demos=250),
-               run_("lstm", variant="lstm"), run_("lstm15", variant="lstm", context=15), {"name": "expert:oracle"}]
+               run_("lstm", variant="lstm"), run_("lstm15", variant="lstm", context=15), run_("mem0", memory=0),
+               {"name": "expert:oracle"}]
     panels = evaluate.fig3_panels(methods)
     assert [(key, [m["name"] for m in members]) for key, _, members in panels] == [
-        ("variant", ["ref", "lstm"]), ("context", ["ctx15", "ref", "ctx60"]), ("n_demos", ["n250", "ref"])]
+        ("variant", ["ref", "lstm"]), ("context", ["ctx15", "ref", "ctx60"]), ("memory", ["mem0", "ref"]),
+        ("n_demos", ["n250", "ref"])]
     assert evaluate.fig3_panels([{"name": "expert:oracle"}]) == []
     out = tmp_path / "fig3.json"
     out.write_text(json.dumps({"config": {"out": str(out), "difficulty": "easy"}, "splits": ["unseen"],
@@ -1057,10 +1055,30 @@ def test_fig3_panels_and_plot(tmp_path):
     try:
         import matplotlib  # noqa: F401  (optional: CI does not install it)
     except ImportError:
-        assert p.returncode != 0 and "--plot needs matplotlib" in p.stderr
+        assert p.returncode != 0 and "need matplotlib" in p.stderr
     else:
         assert p.returncode == 0, p.stderr
         assert (tmp_path / "fig3.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_picture_of_a_solved_hard_episode(tmp_path):
+    """--picture: the first hard or very hard episode the policy solves, its path coloured by skill and
+    frames where the skill changes (RGB with OpenGL, else head depth); matplotlib is optional."""
+    e = env.RearrangeEnv(depth_size=DEPTH)
+    ep = next(ep for ep in env.make_episodes("unseen", 4) if ep.difficulty != "easy")
+    success, poses, skills, frames = evaluate.record_rollout(evaluate.ExpertBatch([e], "oracle"), e, ep, 0)
+    assert success and poses.shape == (len(skills), 3) and frames[0][0] == 0
+    changes = [t for t in range(1, len(skills)) if skills[t] != skills[t - 1] and (skills[t:t + 10] == skills[t]).all()]
+    assert [t for t, _, _ in frames[1:]] == changes and {env.SKILL_IDS["pick"], env.SKILL_IDS["place"]} <= set(skills)
+    p = run("evaluate.py", "--policy", "expert:oracle", "--episodes", 4, "--depth-size", DEPTH,
+            "--picture", tmp_path / "pic.png", check=False)
+    try:
+        import matplotlib  # noqa: F401  (optional: CI does not install it)
+    except ImportError:
+        assert p.returncode != 0 and "need matplotlib" in p.stderr
+    else:
+        assert p.returncode == 0 and "the first solved of" in p.stdout, p.stderr
+        assert (tmp_path / "pic.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_help():
