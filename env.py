@@ -12,7 +12,8 @@ in code with `mujoco.MjSpec` from an integer layout id; depth comes from ray cas
 
 Public names used by the other stages: SKILLS, SKILL_IDS, RECEPTACLES, DIFFICULTIES, KINDS,
 OBS_MODES, STATE_LAYOUT, STATE_DIM, state_layout, state_vector, depth_to_uint8, ACTION_DIM, ARM,
-BASE, GRIP, GRIP_VALUES, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout, gym_env.
+BASE, GRIP, GRIP_VALUES, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout, gym_env,
+add_config_args.
 
 The paper's rule on privileged information (Sec. 3: "entirely from on-board sensing"; Sec. 4.2:
 the receptacle label is "not used at test time"), stated once here: anything computed from the
@@ -805,7 +806,7 @@ class RearrangeEnv:
         """Does object j rest in drawer k (a fridge door moves nothing)?"""
         if RECEPTACLES[k] == "fridge":
             return False
-        m, d, ids = self.model, self.data, self.ids
+        d, ids = self.data, self.ids
         b = ids["rec_body"][k]
         rel = d.xmat[b].reshape(3, 3).T @ (d.xpos[ids["obj_body"][j]] - d.xpos[b])
         half = CAB_SIZE[0] / 2, CAB_SIZE[1] / 2
@@ -857,7 +858,7 @@ class RearrangeEnv:
         return np.clip(dep, 0.0, 1.0).reshape(n, n, 1).astype(np.float32)
 
     def _observe(self):
-        m, d, ids = self.model, self.data, self.ids
+        d, ids = self.data, self.ids
         t0 = time.perf_counter()
         depth = self.depth()
         self.timing["depth"] += time.perf_counter() - t0
@@ -946,7 +947,7 @@ class RearrangeEnv:
 
     def privileged(self):
         """Simulator state for the expert and the labels; never part of the observation."""
-        m, d, ids = self.model, self.data, self.ids
+        d, ids = self.data, self.ids
         return {
             "base": d.qpos[ids["base_q"]].copy(),                      # x, y, yaw
             "arm": d.qpos[ids["arm_q"]].copy(),
@@ -1042,11 +1043,23 @@ def bench(config, episodes=5, steps=400, seed=0):
     return n / total
 
 
-def field_docs(cls):
-    """Field name -> the docstring written under it, for --help."""
+def add_config_args(parser, cls):
+    """One flag per field of a config dataclass (every script's command line comes from its config):
+    --name-with-dashes (or --name_with_underscores), the docstring under the field as its help,
+    --flag / --no-flag for a bool (never type=bool), repeatable for a list -> the parser."""
     body = ast.parse(inspect.getsource(cls)).body[0].body
-    return {a.target.id: b.value.value for a, b in zip(body, body[1:])
+    docs = {a.target.id: b.value.value for a, b in zip(body, body[1:])
             if isinstance(a, ast.AnnAssign) and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)}
+    for f in dataclasses.fields(cls):
+        names = [f"--{f.name.replace('_', '-')}"] + ([f"--{f.name}"] if "_" in f.name else [])
+        kw = {"dest": f.name, "help": docs.get(f.name, "").replace("%", "%%")}   # argparse formats help
+        if f.default_factory is list:
+            parser.add_argument(*names, action="append", default=[], **kw)
+        elif isinstance(f.default, bool):
+            parser.add_argument(*names, action=argparse.BooleanOptionalAction, default=f.default, **kw)
+        else:
+            parser.add_argument(*names, type=type(f.default), default=f.default, **kw)
+    return parser
 
 
 def main():
@@ -1055,14 +1068,7 @@ def main():
     p.add_argument("--view", action="store_true", help="open mujoco.viewer on a layout (needs a display)")
     p.add_argument("--xml", metavar="PATH", help="write the layout's MJCF to PATH")
     p.add_argument("--layout", type=int, default=0, help="layout id for --view / --xml")
-    docs = field_docs(EnvConfig)
-    for f in dataclasses.fields(EnvConfig):
-        if isinstance(f.default, bool):        # no type=bool: --perturb / --no-perturb
-            p.add_argument(f"--{f.name.replace('_', '-')}", action=argparse.BooleanOptionalAction,
-                           default=f.default, help=docs.get(f.name))
-        else:
-            p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default, help=docs.get(f.name))
-    args = p.parse_args()
+    args = add_config_args(p, EnvConfig).parse_args()
     config = EnvConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(EnvConfig)})
     if args.xml:
         with open(args.xml, "w") as fh:

@@ -725,17 +725,9 @@ def evaluate(cfg):
 # --- command line ---
 
 def parse_args(argv=None):
+    """argparse generated from Config (env.add_config_args)."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    docs = env.field_docs(Config)
-    for f in dataclasses.fields(Config):
-        flag, help_ = "--" + f.name.replace("_", "-"), docs[f.name].replace("%", "%%")
-        if f.default_factory is list:
-            p.add_argument(flag, action="append", default=[], help=help_)
-        elif isinstance(f.default, bool):
-            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default, help=help_)
-        else:
-            p.add_argument(flag, type=type(f.default), default=f.default, help=help_)
-    return Config(**vars(p.parse_args(argv)))
+    return Config(**vars(env.add_config_args(p, Config).parse_args(argv)))
 
 
 if __name__ == "__main__":

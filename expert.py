@@ -361,7 +361,6 @@ class Expert:
         if p["held"] == k and self._clearance(self.ids["obj_body"][k]) < LIFT:
             aim = ee + [0, 0, 0.05] + inward
         elif p["held"] < 0:
-            obj = p["objects"][k]
             n = self._frame(self.fur["cabinet"])[0]
             near = [r for r in range(2) if np.linalg.norm(ee - p["handles"][r]) < 0.08]
             below = self._clearance(self.ids["ee_body"], 0.0)
@@ -708,13 +707,7 @@ def run(args):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    docs = env.field_docs(Args)
-    for f in dataclasses.fields(Args):
-        if isinstance(f.default, bool):          # no type=bool: --perturb / --no-perturb
-            p.add_argument(f"--{f.name.replace('_', '-')}", action=argparse.BooleanOptionalAction, default=f.default, help=docs.get(f.name))
-        else:
-            p.add_argument(f"--{f.name.replace('_', '-')}", type=type(f.default), default=f.default, help=docs.get(f.name))
-    args = Args(**vars(p.parse_args()))
+    args = Args(**vars(env.add_config_args(p, Args).parse_args()))
     if args.split not in env.SPLITS or args.plan not in PLANS:
         p.error(f"--split must be one of {tuple(env.SPLITS)} and --plan one of {PLANS}, got {args.split!r}, {args.plan!r}")
     run(args)

@@ -17,7 +17,6 @@ env steps, the mean return and success of the episodes that ended, and the losse
 """
 import argparse
 import csv
-import dataclasses
 import os
 import time
 from dataclasses import dataclass, asdict
@@ -243,17 +242,10 @@ def train(cfg, make_env=None):
 
 
 def parse_args(argv=None):
-    """argparse generated from Config."""
+    """argparse generated from Config (env.add_config_args)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    docs = {k: v.replace("%", "%%") for k, v in env.field_docs(Config).items()}
-    for f in dataclasses.fields(Config):
-        names = [f"--{f.name.replace('_', '-')}"] + ([f"--{f.name}"] if "_" in f.name else [])
-        if f.type is bool:
-            p.add_argument(*names, dest=f.name, action=argparse.BooleanOptionalAction, default=f.default, help=docs[f.name])
-        else:
-            p.add_argument(*names, dest=f.name, type=f.type, default=f.default, help=docs[f.name])
-    return Config(**vars(p.parse_args(argv)))
+    return Config(**vars(env.add_config_args(p, Config).parse_args(argv)))
 
 
 if __name__ == "__main__":

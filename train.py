@@ -36,7 +36,7 @@ import math
 import os
 import random
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -647,18 +647,10 @@ def validate(cfg):
 # --- command line ---
 
 def parse_args(argv=None):
-    """argparse generated from TrainConfig: --name-with-dashes (or underscores), one help line each."""
+    """argparse generated from TrainConfig (env.add_config_args)."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    docs = {k: v.replace("%", "%%") for k, v in env.field_docs(TrainConfig).items()}  # argparse formats help
-    for f in fields(TrainConfig):
-        names = [f"--{f.name.replace('_', '-')}"] + ([f"--{f.name}"] if "_" in f.name else [])
-        if f.type is bool:
-            p.add_argument(*names, dest=f.name, action=argparse.BooleanOptionalAction, default=f.default,
-                           help=docs[f.name])
-        else:
-            p.add_argument(*names, dest=f.name, type=f.type, default=f.default, help=docs[f.name])
-    return TrainConfig(**vars(p.parse_args(argv)))
+    return TrainConfig(**vars(env.add_config_args(p, TrainConfig).parse_args(argv)))
 
 
 if __name__ == "__main__":
