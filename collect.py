@@ -1,44 +1,37 @@
 """Collect expert demonstrations for imitation learning, one `.npz` per episode.
 
-Runs the privileged oracle expert of `expert.py` (our stand-in for the paper's M3 (Oracle)
-data-generating policy, Appendix C.1) on `train` episodes in parallel worker processes and records,
-per step, what the paper records: observations, actions, rewards and the executing skill. The
-stored action is always the expert's clean label for the state the step shows. Three ways to show
-a learner states off the expert's path (EXPERIMENTS.md records what each did):
+Runs the privileged oracle expert of `expert.py` (our stand-in for the paper's M3 (Oracle) data-generating policy,
+Appendix C.1) on `train` episodes in parallel worker processes and records, per step, what the paper records:
+observations, actions, rewards and the executing skill. The stored action is always the expert's clean label for the
+state the step shows. Three ways to show a learner states off the expert's path (EXPERIMENTS.md records each):
 
-- DART (Laskey et al. 2017): the env executes the expert's action plus noise (`--noise`, and
-  `--nav-noise` a drifting turn rate).
-- Perturbation events (`--events R` per 1,000 steps): an open receptacle is shut, the base pushed,
-  or the held target dropped; the expert, a function of the state, recovers in the demo.
-- DAgger (Ross et al. 2011, `--policy CKPT`): a trained policy drives, the expert labels every
-  state. Each segment of `--segment` steps is driven by the expert with probability `--beta`
-  (0: the policy drives all). Every episode is kept, solved or not; train on the union with the
-  expert's demos (train.py --data DIR,DIR).
+- DART (Laskey et al. 2017): the env executes the expert's action plus noise (`--noise`; `--nav-noise`: turn drift).
+- Perturbation events (`--events R` per 1,000 steps): an open receptacle is shut, the base pushed, or the held
+  target dropped; the expert, a function of the state, recovers in the demo.
+- DAgger (Ross et al. 2011, `--policy CKPT`): a trained policy drives, the expert labels every state. Each segment
+  of `--segment` steps is driven by the expert with probability `--beta` (0: the policy drives all). Every episode
+  is kept, solved or not; train on the union with the expert's demos (train.py --data DIR,DIR).
 
     python collect.py --out data/demos                    # the recipe: 1,000 demos, DART noise, events
     python collect.py --out data/priv --obs privileged    # the same demos with receptacle_open in the state
     python collect.py --episodes 300 --out data/dagger --seed 1 --policy ckpt/st.pt --beta 0.5
     python collect.py --stats data/demos
 
-Determinism: episode index k runs `env.make_episodes("train", ..., seed=S)[k]` with a reset seed
-derived from (S, k), which also seeds the noise, the events and the DAgger segments, so a file's
-bytes never depend on the worker count. Without `--keep-failed` (or `--policy`) indices are judged
-in order and the first N successes are kept. Files are written to a temporary name and renamed,
-so rerunning the same command after a kill resumes where it stopped.
+Determinism: episode index k runs `env.make_episodes("train", ..., seed=S)[k]` with a reset seed derived from
+(S, k), which also seeds the noise, the events and the DAgger segments, so a file's bytes never depend on the worker
+count. Without `--keep-failed` (or `--policy`) indices are judged in order and the first N successes are kept.
+Files are written to a temporary name and renamed, so rerunning the same command after a kill resumes.
 
 File format 3 (readable with `numpy.load(path, allow_pickle=False)`), T steps:
-    depth uint8 (T, H, W), state float32 (T, D) in meta.json's state_layout (D = 30 with
-    obs="paper", 32 with "privileged"), action float32 (T, 10) clean expert action,
-    skill int8 (T,), receptacle int8 (T,) auxiliary label of the observed state,
-    receptacle_open float32 (T, 2) how open the target's and the goal's receptacles are (a
-    training target, env.RearrangeEnv._receptacle_open), reward float32 (T,) reward received
-    after the action;
+    depth uint8 (T, H, W), state float32 (T, D) in meta.json's state_layout (D = 30 with obs="paper", 32 with
+    "privileged"), action float32 (T, 10) clean expert action, skill int8 (T,), receptacle int8 (T,) auxiliary
+    label of the observed state, receptacle_open float32 (T, 2) how open the target's and the goal's receptacles
+    are (a training target, env.RearrangeEnv._receptacle_open), reward float32 (T,) received after the action;
     events int64 (3,) perturbation events of the episode: shut, push, drop (EVENTS);
     scalars: success bool, layout int, difficulty str, seed int (reset seed), index int.
 """
 import argparse
 import dataclasses
-import itertools
 import json
 import multiprocessing as mp
 import os
@@ -47,7 +40,6 @@ import re
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -56,7 +48,7 @@ import env
 import expert
 
 
-@dataclass
+@dataclasses.dataclass
 class Config:
     episodes: int = 1000
     """number of demonstrations to write (successful ones unless --keep-failed or --policy)"""
@@ -73,12 +65,11 @@ class Config:
     nav_noise: float = 0.2
     """DART drift of the executed turn rate while navigating (expert.Expert's nav_noise; 0: none)"""
     events: float = 3.0
-    """expected perturbation events per 1,000 steps (shut an open receptacle in view, push the base,
-    drop the held target; 0: none); 3 solved more than 1 (EXPERIMENTS.md R47)"""
+    """perturbation rate per 1,000 steps (shut, push, drop; 0: none); 3 solved more than 1 (EXPERIMENTS.md R47)"""
     policy: str = ""
     """DAgger: this train.py checkpoint drives, the expert labels every step; keeps every episode, solved or not"""
     beta: float = 0.0
-    """DAgger: probability that the expert (noised) drives a segment instead of the --policy (0: the policy drives all)"""
+    """DAgger: probability that the (noised) expert drives a segment, not the --policy (0: the policy drives all)"""
     segment: int = 10
     """DAgger: steps per segment; who drives is drawn at the start of each"""
     keep_failed: bool = False
@@ -115,8 +106,7 @@ def reset_seed(seed, k):
 EVENTS = ("shut", "push", "drop")
 STEP_ARRAYS = {"depth": np.uint8, "state": np.float32, "action": np.float32, "skill": np.int8,
                "receptacle": np.int8, "receptacle_open": np.float32, "reward": np.float32}
-TRAILING_SHAPE = {"action": (env.ACTION_DIM,), "skill": (), "receptacle": (), "receptacle_open": (2,),
-                  "reward": ()}
+TRAILING_SHAPE = {"action": (env.ACTION_DIM,), "skill": (), "receptacle": (), "receptacle_open": (2,), "reward": ()}
 SCALARS = {"success": "b", "layout": "iu", "difficulty": "U", "seed": "iu", "index": "iu"}
 
 
@@ -130,8 +120,7 @@ def load_episode(path, state_dim):
         raise ValueError(f"{path}: not a readable demonstration .npz ({type(err).__name__}: {err})") from err
     missing = sorted((set(STEP_ARRAYS) | set(SCALARS) | {"events"}) - set(data))
     if missing:
-        raise ValueError(f"{path}: missing keys {missing}; not a demonstration written by collect.py "
-                         f"(format {FORMAT_VERSION})")
+        raise ValueError(f"{path}: missing keys {missing}; not a collect.py demonstration (format {FORMAT_VERSION})")
     T = len(data["action"]) if data["action"].ndim else 0
     if T < 1:
         raise ValueError(f"{path}: expected at least one step, got action of shape {data['action'].shape}")
@@ -152,10 +141,9 @@ def load_episode(path, state_dim):
     if ev.shape != (len(EVENTS),) or ev.dtype.kind not in "iu" or (ev < 0).any():
         raise ValueError(f"{path}: events should be {len(EVENTS)} counts >= 0 ({', '.join(EVENTS)}), "
                          f"got shape {ev.shape} dtype {ev.dtype}")
-    if not (0 <= data["skill"].min() and data["skill"].max() < len(env.SKILLS)):
-        raise ValueError(f"{path}: skill ids outside [0, {len(env.SKILLS)})")
-    if not (0 <= data["receptacle"].min() and data["receptacle"].max() <= len(env.RECEPTACLES)):
-        raise ValueError(f"{path}: receptacle labels outside [0, {len(env.RECEPTACLES)}]")
+    for key, top in (("skill", len(env.SKILLS) - 1), ("receptacle", len(env.RECEPTACLES))):   # receptacle 0: none
+        if not (0 <= data[key].min() and data[key].max() <= top):
+            raise ValueError(f"{path}: {key} labels outside [0, {top}]")
     if not np.isin(data["action"][:, env.GRIP], env.GRIP_VALUES).all():
         raise ValueError(f"{path}: grip commands (action[:, {env.GRIP}]) outside {env.GRIP_VALUES}")
     if str(data["difficulty"]) not in env.DIFFICULTIES:
@@ -170,21 +158,18 @@ SHUT_CLEAR = 0.5           # m: ... while the cup is farther than this from its 
                            # its furniture (an arm reaching into the fridge is far from the door's handle)
 PUSH_DIST = (0.1, 0.3)     # m: a push moves the base this far, in a direction drawn uniformly,
 PUSH_YAW = 0.3             # rad: and turns it by up to this much either way
-DROP_CLEAR = env.ROBOT_RADIUS + 0.05   # m: the held target is dropped only this far from the base
-                                       # centre (never onto the robot) and above a surface or receptacle
+DROP_CLEAR = env.ROBOT_RADIUS + 0.05   # m: the held target is dropped this far from the base centre (not on the robot)
 
 
 def applicable_events(e, x):
-    """The events that apply to the current state -> {kind: its choices} (for shut: the receptacles).
-    x (expert.Expert) has acted on this state; its support() names the place under a point, so that a
-    receptacle is not shut on the arm and the target is dropped above a surface or a receptacle. A
-    receptacle is shut only where the head camera sees its handle: the expert then goes back to open
-    it, and a learner can imitate that only if it could see why (env.py's rule)."""
+    """The events that apply now -> {kind: its choices} (for shut: the receptacles). x (expert.Expert) has acted on
+    this state; its support() names the place under a point, so a receptacle is not shut on the arm and the target is
+    dropped above a surface or receptacle. A receptacle is shut only where the head camera sees its handle: the expert
+    goes back to open it, which a learner can imitate only if it could see why (env.py's rule)."""
     p = e.privileged()
     over = x.support(p["ee"])
     cabinet = over.startswith("drawer")                  # the drawers are stacked: over one is near both
-    # not the goal's receptacle while the target is carried: it cannot be opened with the object in
-    # the cup, and the expert would have to put it down wherever it stands
+    # not the goal's receptacle while the target is carried: opening it would mean putting the target down anywhere
     carried = p["held"] == p["target"]
     shut = [k for k, r in enumerate(env.RECEPTACLES)
             if p["open_fraction"][k] > SHUT_OPEN and np.linalg.norm(p["ee"] - p["handles"][k]) > SHUT_CLEAR
@@ -285,37 +270,16 @@ def collect_job(job):
 
 # --- the dataset directory ---
 
-def env_kwargs_of(cfg):
-    kwargs = {"obs": cfg.obs}
-    if cfg.depth_size:
-        kwargs["depth_size"] = cfg.depth_size
-    if cfg.max_steps:
-        kwargs["max_steps"] = cfg.max_steps
-    return kwargs
-
-
 def make_meta(cfg, env_kwargs):
-    return {
-        "format": FORMAT_VERSION,
-        "env_config": dataclasses.asdict(env.EnvConfig(**env_kwargs)),
-        "state_layout": [[k, n] for k, n in env.state_layout(cfg.obs)],
-        "skills": list(env.SKILLS),
-        "receptacles": list(env.RECEPTACLES),
-        "difficulties": list(env.DIFFICULTIES),
-        "split": "train",
-        "plan": "oracle",
-        "seed": cfg.seed,
-        "noise": cfg.noise,
-        "nav_noise": cfg.nav_noise,
-        "events": cfg.events,
-        "keep_failed": cfg.keep_failed or bool(cfg.policy),   # a DAgger set keeps every episode
-        "release_zone": expert.RELEASE_ZONE,                   # the place's release label
-        "policy": cfg.policy or None,                          # DAgger: null for the expert's own demos
-        "beta": cfg.beta if cfg.policy else None,
-        "segment": cfg.segment if cfg.policy else None,
-        "versions": {"python": platform.python_version(), "numpy": np.__version__,
-                     "mujoco": mujoco.__version__},
-    }
+    return {"format": FORMAT_VERSION, "env_config": dataclasses.asdict(env.EnvConfig(**env_kwargs)),
+            "state_layout": [[k, n] for k, n in env.state_layout(cfg.obs)], "skills": list(env.SKILLS),
+            "receptacles": list(env.RECEPTACLES), "difficulties": list(env.DIFFICULTIES), "split": "train",
+            "plan": "oracle", "seed": cfg.seed, "noise": cfg.noise, "nav_noise": cfg.nav_noise, "events": cfg.events,
+            "keep_failed": cfg.keep_failed or bool(cfg.policy),   # a DAgger set keeps every episode
+            "release_zone": expert.RELEASE_ZONE,                   # the place's release label
+            "policy": cfg.policy or None,                          # DAgger: null for the expert's own demos
+            "beta": cfg.beta if cfg.policy else None, "segment": cfg.segment if cfg.policy else None,
+            "versions": {"python": platform.python_version(), "numpy": np.__version__, "mujoco": mujoco.__version__}}
 
 
 def check_or_write_meta(out, meta):
@@ -344,46 +308,18 @@ def check_or_write_meta(out, meta):
 
 def remove_temps(out):
     """Remove temporary files: partial results of a killed run or of unfinished jobs."""
-    for name in os.listdir(out):
-        if TEMP_FILE.match(name):
-            os.remove(os.path.join(out, name))
+    for name in filter(TEMP_FILE.match, os.listdir(out)):
+        os.remove(os.path.join(out, name))
 
 
-def scan_dir(out, state_dim):
-    """Validate every episode file in out -> {k: summary}."""
-    have = {}
-    for name in sorted(os.listdir(out)):
+def read_episodes(out, state_dim):
+    """Validate every .npz in out, in name order -> yields (k, episode dict) per ep_{k:06d}.npz."""
+    for name in sorted(n for n in os.listdir(out) if n.endswith(".npz")):
         path = os.path.join(out, name)
-        if not name.endswith(".npz"):
-            continue
         m = EPISODE_FILE.match(name)
         if not m:
             raise ValueError(f"{path}: foreign .npz in the dataset directory (expected ep_NNNNNN.npz)")
-        data = load_episode(path, state_dim)
-        have[int(m.group(1))] = {"success": bool(data["success"]), "index": int(data["index"]),
-                                 "seed": int(data["seed"]), "layout": int(data["layout"]),
-                                 "difficulty": str(data["difficulty"])}
-    return have
-
-
-def check_existing(out, k, summary, episode, seed):
-    want = {"index": k, "seed": seed, "layout": int(episode.layout), "difficulty": episode.difficulty}
-    got = {key: summary[key] for key in want}
-    if got != want:
-        raise ValueError(f"{episode_path(out, k)}: holds {got}, but this dataset's episode {k} is {want} "
-                         f"(a file from another dataset?)")
-
-
-def episode_source(split, seed):
-    """k -> the k-th episode of make_episodes(split, ..., seed), growing the list as needed."""
-    episodes = []
-
-    def get(k):
-        nonlocal episodes
-        if k >= len(episodes):
-            episodes = env.make_episodes(split, max(k + 1, 2 * len(episodes), 64), seed=seed)
-        return episodes[k]
-    return get
+        yield int(m.group(1)), load_episode(path, state_dim)
 
 
 # --- main loop ---
@@ -405,13 +341,13 @@ def collect(cfg):
     """Write cfg.episodes demonstrations to cfg.out; returns a summary."""
     need = cfg.episodes
     max_draws = 10 * need + 20   # more failures than this: give up with a clear error
-    env_kwargs = env_kwargs_of(cfg)
+    env_kwargs = {"obs": cfg.obs, **{k: getattr(cfg, k) for k in ("depth_size", "max_steps") if getattr(cfg, k)}}
     keep_all = cfg.keep_failed or bool(cfg.policy)   # DAgger: the labels are valid, solved or not
     if not 0 <= cfg.events <= 1000:
         raise ValueError(f"--events is a rate per 1,000 steps in [0, 1000], got {cfg.events}")
     if not (0 <= cfg.beta <= 1 and cfg.segment >= 1):
         raise ValueError(f"--beta must be in [0, 1] and --segment >= 1, got {cfg.beta} and {cfg.segment}")
-    env.state_layout(cfg.obs)                        # ValueError for an unknown --obs
+    state_dim = sum(n for _, n in env.state_layout(cfg.obs))   # ValueError for an unknown --obs
     if not cfg.policy and (cfg.beta, cfg.segment) != (Config.beta, Config.segment):
         raise ValueError(f"--beta and --segment mix a --policy's actions with the expert's; "
                          f"got --beta {cfg.beta} --segment {cfg.segment} without --policy")
@@ -420,9 +356,9 @@ def collect(cfg):
     os.makedirs(cfg.out, exist_ok=True)
     check_or_write_meta(cfg.out, make_meta(cfg, env_kwargs))
     remove_temps(cfg.out)
-    have = scan_dir(cfg.out, sum(n for _, n in env.state_layout(cfg.obs)))
-    episode_of = episode_source("train", cfg.seed)
-    indices = itertools.count()
+    have = {k: {key: d[key].item() for key in ("success", "index", "seed", "layout", "difficulty")}
+            for k, d in read_episodes(cfg.out, state_dim)}   # the files already there, validated
+    episodes = []   # make_episodes("train", ..., cfg.seed), grown as needed
     pool = mp.get_context("spawn").Pool(cfg.workers) if cfg.workers > 1 else None
     # (k, None for a file already there | AsyncResult | job to run here), in index order; judged in
     # that order, with enough in flight that a long episode at the head does not idle the workers
@@ -435,11 +371,16 @@ def collect(cfg):
                 if drawn >= max_draws:
                     raise RuntimeError(f"only {kept}/{need} demonstrations after {drawn} episode indices: "
                                        "the expert rarely succeeds with these settings")
-                k = next(indices)
-                drawn += 1
-                episode, seed = episode_of(k), reset_seed(cfg.seed, k)
-                if k in have:
-                    check_existing(cfg.out, k, have[k], episode, seed)
+                k, drawn = drawn, drawn + 1   # indices are drawn in order: 0, 1, 2, ...
+                if k >= len(episodes):
+                    episodes = env.make_episodes("train", max(k + 1, 2 * len(episodes), 64), seed=cfg.seed)
+                episode, seed = episodes[k], reset_seed(cfg.seed, k)
+                if k in have:   # a file already there must hold this dataset's episode k
+                    want = {"index": k, "seed": seed, "layout": int(episode.layout), "difficulty": episode.difficulty}
+                    got = {key: have[k][key] for key in want}
+                    if got != want:
+                        raise ValueError(f"{episode_path(cfg.out, k)}: holds {got}, but this dataset's episode {k} "
+                                         f"is {want} (a file from another dataset?)")
                     pending.append((k, None))
                     continue
                 job = (k, episode, seed, cfg, env_kwargs)
@@ -467,30 +408,23 @@ def collect(cfg):
             pool.terminate() if pending else pool.close()
             pool.join()
         remove_temps(cfg.out)
-    return {"kept": kept, "drawn": drawn, "ran": ran, "ran_success": ran_success,
-            "seconds": time.time() - t0}
+    return {"kept": kept, "drawn": drawn, "ran": ran, "ran_success": ran_success, "seconds": time.time() - t0}
 
 
 # --- statistics ---
 
 def dataset_stats(out):
     """Summary of a dataset directory (every file validated) -> dict."""
-    names = sorted(n for n in os.listdir(out) if n.endswith(".npz"))
+    size = sum(os.path.getsize(os.path.join(out, n)) for n in os.listdir(out))
     try:
         with open(os.path.join(out, "meta.json")) as f:
             state_dim = sum(n for _, n in json.load(f)["state_layout"])
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise ValueError(f"{out}/meta.json: missing or unreadable ({err}); is {out!r} written by collect.py?") from err
-    skills = np.zeros(len(env.SKILLS), np.int64)
-    events = np.zeros(len(EVENTS), np.int64)
-    still = inner = 0
+    skills, events = np.zeros(len(env.SKILLS), np.int64), np.zeros(len(EVENTS), np.int64)
+    lengths, still, inner = [], 0, 0
     by_diff = {d: [0, 0] for d in env.DIFFICULTIES}
-    lengths, size = [], sum(os.path.getsize(os.path.join(out, n)) for n in os.listdir(out))
-    for name in names:
-        path = os.path.join(out, name)
-        if not EPISODE_FILE.match(name):
-            raise ValueError(f"{path}: foreign .npz in the dataset directory (expected ep_NNNNNN.npz)")
-        data = load_episode(path, state_dim)
+    for _, data in read_episodes(out, state_dim):
         skills += np.bincount(data["skill"], minlength=len(env.SKILLS))
         by_diff[str(data["difficulty"])][0] += 1
         by_diff[str(data["difficulty"])][1] += bool(data["success"])
@@ -499,7 +433,7 @@ def dataset_stats(out):
         a = data["action"][:-30]                # a label that waits: still arm, still base, no grip
         still += int(((np.abs(a[:, :9]).max(1) < 0.02) & (a[:, 9] == 0)).sum())
         inner += len(a)
-    n = len(names)
+    n = len(lengths)
     return {"episodes": n, "steps": int(sum(lengths)),
             "steps_min_mean_max": [min(lengths, default=0), float(np.mean(lengths)) if n else 0.0,
                                    max(lengths, default=0)],

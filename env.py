@@ -1,28 +1,25 @@
 """Rearrangement environment: a Fetch-like mobile manipulator in procedurally built apartments.
 
-The task of the paper (Sec. 3, Appendix B), scaled to one CPU core: a robot with a planar base,
-a 7-DoF arm and a suction cup must move a target object from its start to a goal; object and goal
-may sit in a closed drawer or a closed fridge, so the robot must open it first. Scenes are built
-in code with `mujoco.MjSpec` from an integer layout id; depth comes from ray casting
-(`mj_multiRay`), so no OpenGL is needed.
+The task of the paper (Sec. 3, Appendix B), scaled to one CPU core: a robot with a planar base, a 7-DoF arm and
+a suction cup must move a target object from its start to a goal; object and goal may sit in a closed drawer or
+fridge, which the robot must open first. Scenes are built in code with `mujoco.MjSpec` from an integer layout id;
+depth comes from ray casting (`mj_multiRay`), so no OpenGL is needed.
 
     python env.py --bench                 # steps/s with a breakdown (physics, depth, rest)
     python env.py --view --layout 3       # interactive viewer (needs a display)
     python env.py --xml scene.xml         # write a layout's MJCF for inspection
 
-Public names used by the other stages: SKILLS, SKILL_IDS, RECEPTACLES, DIFFICULTIES, KINDS,
-OBS_MODES, STATE_LAYOUT, STATE_DIM, state_layout, state_vector, depth_to_uint8, ACTION_DIM, ARM,
-BASE, GRIP, GRIP_VALUES, EnvConfig, RearrangeEnv, Episode, make_episodes, make_layout, gym_env,
-add_config_args.
+Public names used by the other stages: SKILLS, SKILL_IDS, RECEPTACLES, DIFFICULTIES, KINDS, OBS_MODES, STATE_LAYOUT,
+STATE_DIM, state_layout, state_vector, depth_to_uint8, ACTION_DIM, ARM, BASE, GRIP, GRIP_VALUES, EnvConfig,
+RearrangeEnv, Episode, make_episodes, make_layout, gym_env, add_config_args.
 
-The paper's rule on privileged information (Sec. 3: "entirely from on-board sensing"; Sec. 4.2:
-the receptacle label is "not used at test time"), stated once here: anything computed from the
-simulator's world state (receptacle joints, object poses after the start, contact forces, the
-expert's plan) may be a training target (info["receptacle"], info["receptacle_open"], the expert's
-skill), never a policy input. The policy's inputs are the robot's own senses (depth, joints, its
-servo set-point, holding, egomotion) and the task's geometric specification (where the target
-started, where the goal is). EnvConfig(obs="paper"), the default, gives exactly those;
-obs="privileged" adds `receptacle_open`, read from the receptacle joints, for one ablation row.
+The paper's rule on privileged information (Sec. 3: "entirely from on-board sensing"; Sec. 4.2: the receptacle
+label is "not used at test time"), stated once here: anything computed from the simulator's world state (receptacle
+joints, object poses after the start, contact forces, the expert's plan) may be a training target (info["receptacle"],
+info["receptacle_open"], the expert's skill), never a policy input. The policy's inputs are the robot's own senses
+(depth, joints, its servo set-point, holding, egomotion) and the task's geometric specification (where the target
+started, where the goal is): exactly what EnvConfig(obs="paper"), the default, gives; obs="privileged" adds
+`receptacle_open`, read from the receptacle joints, for one ablation row.
 """
 import argparse
 import ast
@@ -46,12 +43,11 @@ PAPER_STATE = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest",
 STATE_LAYOUTS = {"paper": PAPER_STATE, "privileged": PAPER_STATE + (("receptacle_open", 2),)}
 STATE_LAYOUT = STATE_LAYOUTS["paper"]               # the default mode's, the recipe's
 STATE_DIM = sum(n for _, n in STATE_LAYOUT)         # 30
-# joint_target is not in the paper's observation, but it is the robot's own command: the expert's
-# arm label depends on the servo set-point, which leads the joints by ~0.1 rad (EXPERIMENTS.md, M4).
-# receptacle_open (obs="privileged" only) is world state: how open the target's and the goal's
-# receptacles are. The expert opens a shut goal receptacle before the pick, which a 32 x 32 depth
-# image cannot show from across the room nor a 15-step context remember (EXPERIMENTS.md R33, R40);
-# the paper's setting learns it from memory and auxiliary targets instead (model.py).
+# joint_target is not in the paper's observation, but it is the robot's own command: the expert's arm label depends
+# on the servo set-point, which leads the joints by ~0.1 rad (EXPERIMENTS.md, M4). receptacle_open (obs="privileged"
+# only) is world state: how open the target's and the goal's receptacles are. The expert opens a shut goal receptacle
+# before the pick, which a 32 x 32 depth image cannot show from across the room nor a 15-step context remember
+# (EXPERIMENTS.md R33, R40); the paper's setting learns it from memory and auxiliary targets instead (model.py).
 ACTION_DIM = 10                                      # 7 arm deltas, 2 base velocities, 1 grip
 ARM, BASE, GRIP = slice(0, 7), slice(7, 9), 9        # action layout
 GRIP_VALUES = (-1.0, 0.0, 1.0)                       # release, keep, grasp = grip classes 0, 1, 2
@@ -150,8 +146,7 @@ CAB_SIZE = (0.5, 0.8, 0.8)        # cabinet depth, width, height; drawers at DRA
 DRAWER_Z = (0.55, 0.25)           # drawer_0 (top), drawer_1 (bottom): base heights inside the cabinet
 DRAWER_TRAVEL = 0.35
 FRIDGE_SIZE = (0.6, 0.6, 1.5)     # a narrow door: its handle's arc stays within the arm's reach
-FRIDGE_SHELF = 0.65               # height of the shelf top inside the fridge: 10 cm under the lower
-                                  # table, so the goal's height tells a fridge goal from a table's (R38)
+FRIDGE_SHELF = 0.65               # shelf top 10 cm under the lower table: a goal's height tells fridge from table (R38)
 DOOR_RANGE = 1.75                 # rad the fridge door swings open
 DOOR_HALF = 0.015                 # m: half the door's thickness; its hinge axis stands this far before the face
 
@@ -163,7 +158,6 @@ def _local_to_world(f, p):
 
 def make_layout(layout_id):
     """Deterministic apartment for a layout id: walls, two surfaces, a cabinet, a fridge, obstacles.
-
     Rejection sampling under a sub-seed until the layout is navigable, so every id is valid."""
     if layout_id not in TRAIN_LAYOUTS and layout_id not in EVAL_LAYOUTS:
         raise ValueError(f"layout id {layout_id}: expected one of {TRAIN_LAYOUTS[0]}..{TRAIN_LAYOUTS[-1]} "
@@ -185,8 +179,7 @@ def _sample_layout(layout_id, rng):
     walls = [(0, np.pi / 2), (1, np.pi), (2, -np.pi / 2), (3, 0.0)]   # wall index, facing yaw
     used = {k: [] for k in range(4)}                                   # occupied intervals per wall
     furniture = []
-    for idx in order:
-        name, kind, size = items[idx]
+    for name, kind, size in [items[i] for i in order]:
         for _ in range(50):
             wall, yaw = walls[rng.integers(4)]
             length = W if wall in (0, 2) else D
@@ -212,44 +205,37 @@ def occupancy_grid(layout, inflate=ROBOT_RADIUS + 0.05):
     """Boolean grid (nx, ny), True = blocked for the base centre; cell (i, j) is at ((i+.5)r, (j+.5)r)."""
     W, D = layout.room
     nx, ny = int(np.ceil(W / GRID_RES)), int(np.ceil(D / GRID_RES))
-    xs, ys = (np.arange(nx) + 0.5) * GRID_RES, (np.arange(ny) + 0.5) * GRID_RES
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    X, Y = np.meshgrid((np.arange(nx) + 0.5) * GRID_RES, (np.arange(ny) + 0.5) * GRID_RES, indexing="ij")
     blocked = (X < inflate) | (X > W - inflate) | (Y < inflate) | (Y > D - inflate)
     for f in layout.furniture:
         c, s = np.cos(f.yaw), np.sin(f.yaw)
         lx = c * (X - f.center[0]) + s * (Y - f.center[1])       # into the furniture's frame
         ly = -s * (X - f.center[0]) + c * (Y - f.center[1])
-        dx = np.maximum(np.abs(lx) - f.size[0] / 2, 0)
-        dy = np.maximum(np.abs(ly) - f.size[1] / 2, 0)
+        dx, dy = np.maximum(np.abs(lx) - f.size[0] / 2, 0), np.maximum(np.abs(ly) - f.size[1] / 2, 0)
         blocked |= np.hypot(dx, dy) < inflate
     return blocked
 
 
 def interaction_poses(layout):
-    """Where the base stands to work at each piece of furniture: {name: (x, y, yaw)}.
-
-    Surfaces and the fridge shelf: in front, facing it. Drawers: a little farther, so the pulled
-    drawer clears the base. Fridge door: to the side of the handle, so the door swings past."""
+    """Where the base stands to work at each piece of furniture, facing it: {name: (x, y, yaw)}. Surfaces and
+    the fridge shelf: in front. Drawers: a little farther, so the pulled drawer clears the base. Fridge door: to
+    the side of the handle, so the door swings past."""
     poses = {}
     for f in layout.furniture:
-        face = f.yaw + np.pi
+        at = lambda x, y=0.0: (*_local_to_world(f, (x, y)), f.yaw + np.pi)   # local front point -> facing pose
         if f.kind == "surface":
-            poses[f.name] = (*_local_to_world(f, (f.size[0] / 2 + 0.5, 0.0)), face)
+            poses[f.name] = at(f.size[0] / 2 + 0.5)
         elif f.kind == "cabinet":
-            poses["cabinet"] = (*_local_to_world(f, (f.size[0] / 2 + 0.62, 0.0)), face)
-            poses["cabinet_pick"] = (*_local_to_world(f, (f.size[0] / 2 + DRAWER_TRAVEL + 0.45, 0.0)), face)
+            poses.update(cabinet=at(f.size[0] / 2 + 0.62), cabinet_pick=at(f.size[0] / 2 + DRAWER_TRAVEL + 0.45))
         elif f.kind == "fridge":
-            poses["fridge"] = (*_local_to_world(f, (f.size[0] / 2 + 0.55, 0.0)), face)
-            poses["fridge_door"] = (*_local_to_world(f, (f.size[0] / 2 + 0.95, 0.25)), face)   # arc within reach
+            poses.update(fridge=at(f.size[0] / 2 + 0.55), fridge_door=at(f.size[0] / 2 + 0.95, 0.25))   # arc in reach
     return poses
 
 
 def _navigable(layout):
     """Every interaction pose is free and in one connected free region covering most of the room."""
-    blocked = occupancy_grid(layout)
-    free = ~blocked
-    poses = interaction_poses(layout)
-    cells = [(int(p[0] / GRID_RES), int(p[1] / GRID_RES)) for p in poses.values()]
+    free = ~occupancy_grid(layout)
+    cells = [(int(p[0] / GRID_RES), int(p[1] / GRID_RES)) for p in interaction_poses(layout).values()]
     if any(not (0 <= i < free.shape[0] and 0 <= j < free.shape[1]) or not free[i, j] for i, j in cells):
         return False
     comp = _flood(free, cells[0])
@@ -297,9 +283,8 @@ class Episode:
 
 
 def place_position(layout, place, rng, opened=False):
-    """A random resting position (x, y, z of an object's centre) on a surface or in a receptacle,
-    in the front part so that the arm can reach it; in a drawer as it is closed, or as it is
-    pulled open (opened=True: goals, which can only be reached with the drawer out)."""
+    """A random resting position (x, y, z of an object's centre) on a surface or in a receptacle, in the front
+    part so that the arm can reach it; in a drawer as it is closed, or pulled open (opened=True: goals)."""
     fur = {f.name: f for f in layout.furniture}
     if place.startswith("drawer"):
         f, k = fur["cabinet"], int(place[-1])
@@ -318,14 +303,12 @@ def place_position(layout, place, rng, opened=False):
 
 def make_episodes(split, n, seed=0):
     """n deterministic episodes of a split. Episode i depends only on (split, seed, i), not on n.
-
-    Mix (Sec. 3): 25 % easy, 50 % hard (half object-closed, half goal-closed), 25 % very hard,
-    for every split; `train` and `seen` share layouts but draw from different seed streams."""
+    Mix (Sec. 3): 25 % easy, 50 % hard (half object-closed, half goal-closed), 25 % very hard, for every
+    split; `train` and `seen` share layouts but draw from different seed streams."""
     if split not in SPLITS:
         raise ValueError(f"split {split!r}: expected one of {tuple(SPLITS)}")
     layouts = EVAL_LAYOUTS if split == "unseen" else TRAIN_LAYOUTS
-    cache = {}
-    episodes = []
+    cache, episodes = {}, []
     for i in range(n):
         rng = np.random.default_rng([SPLITS[split], seed, i])
         layout_id = int(layouts[rng.integers(len(layouts))])
@@ -335,7 +318,7 @@ def make_episodes(split, n, seed=0):
         layout, region = cache[layout_id]
         kind = KINDS[i % 4]
         surfaces = [f.name for f in layout.furniture if f.kind == "surface"]
-        obj_place = str(rng.choice(RECEPTACLES)) if kind in ("object_closed", "very_hard") else str(rng.choice(surfaces))
+        obj_place = str(rng.choice(RECEPTACLES if kind in ("object_closed", "very_hard") else surfaces))
         # object and goal never in the two drawers of one cabinet: an open drawer covers the other
         goal_choices = [p for p in (RECEPTACLES if kind in ("goal_closed", "very_hard") else surfaces)
                         if p != obj_place and not (p.startswith("drawer") and obj_place.startswith("drawer"))]
@@ -398,35 +381,31 @@ def build_spec(layout):
             _box(body, f"{f.name}_base", (-dx / 2, 0, (h - 0.04) / 2), (dx / 2, dy - 0.05, (h - 0.04) / 2))   # set back: room for the base's front
         elif f.kind == "obstacle":
             _box(body, f"{f.name}_geom", (0, 0, h / 2), (dx, dy, h / 2), rgba=(0.5, 0.5, 0.4, 1))
-        elif f.kind == "cabinet":
-            _build_cabinet(body, dx, dy, h)
-        elif f.kind == "fridge":
-            _build_fridge(body, dx, dy, h)
+        elif f.kind in ("cabinet", "fridge"):        # a shell open at the front ...
+            pre, col = ("cab", (0.7, 0.6, 0.5, 1)) if f.kind == "cabinet" else ("fridge", (0.9, 0.9, 0.92, 1))
+            for part, pos, half in [("back", (-dx + 0.02, 0, h / 2), (0.02, dy, h / 2)),
+                                    ("left", (0, dy - 0.02, h / 2), (dx, 0.02, h / 2)),
+                                    ("right", (0, -dy + 0.02, h / 2), (dx, 0.02, h / 2)),
+                                    ("top", (0, 0, h - 0.02), (dx, dy, 0.02)), ("base", (0, 0, 0.05), (dx, dy, 0.05))]:
+                _box(body, f"{pre}_{part}", pos, half, col)
+            (_build_cabinet if f.kind == "cabinet" else _build_fridge)(body, dx, dy, h)   # ... then drawers or door
     for k in range(N_OBJECTS):
         ob = wb.add_body(name=f"obj_{k}", pos=[0, 0, OBJ_HALF + 2 * k])
         ob.add_freejoint(name=f"obj_{k}_free")
         ob.add_geom(name=f"obj_{k}_geom", type=G.mjGEOM_BOX, size=[OBJ_HALF] * 3, mass=0.2,
                     rgba=[0.9, 0.2, 0.2, 1] if k == 0 else [0.2, 0.6, 0.9, 1], friction=[1.0, 0.01, 0.001])
     _build_robot(spec, wb)
-    for k in range(N_OBJECTS):                        # suction: one inactive weld per object
-        e = spec.add_equality(name=f"suction_obj_{k}", type=mujoco.mjtEq.mjEQ_WELD,
-                              objtype=mujoco.mjtObj.mjOBJ_BODY, name1="ee", name2=f"obj_{k}")
+    for k in range(N_OBJECTS):                        # suction: one inactive weld per object, stiff: no sag
+        e = spec.add_equality(name=f"suction_obj_{k}", type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
+                              name1="ee", name2=f"obj_{k}", active=False, solimp=[0.99, 0.999, 0.001, 0.5, 2])
         e.data[0:3] = [0, 0, 0]                       # the spec default anchor is (0, 1, 0)
-        e.active = False
-        e.solimp = [0.99, 0.999, 0.001, 0.5, 2]       # a stiff weld: the carried object does not sag
     for rec in RECEPTACLES:                           # handles: a ball joint, so the door can turn
-        e = spec.add_equality(name=f"suction_{rec}", type=mujoco.mjtEq.mjEQ_CONNECT,
-                              objtype=mujoco.mjtObj.mjOBJ_BODY, name1="ee", name2=rec)
-        e.active = False
+        spec.add_equality(name=f"suction_{rec}", type=mujoco.mjtEq.mjEQ_CONNECT, objtype=mujoco.mjtObj.mjOBJ_BODY,
+                          name1="ee", name2=rec, active=False)
     return spec
 
 
 def _build_cabinet(body, dx, dy, h):
-    _box(body, "cab_back", (-dx + 0.02, 0, h / 2), (0.02, dy, h / 2))
-    _box(body, "cab_left", (0, dy - 0.02, h / 2), (dx, 0.02, h / 2))
-    _box(body, "cab_right", (0, -dy + 0.02, h / 2), (dx, 0.02, h / 2))
-    _box(body, "cab_top", (0, 0, h - 0.02), (dx, dy, 0.02))
-    _box(body, "cab_base", (0, 0, 0.05), (dx, dy, 0.05))
     _box(body, "cab_mid", (0, 0, (DRAWER_Z[0] + DRAWER_Z[1] + 0.25) / 2), (dx - 0.04, dy - 0.04, 0.01))
     for k, z in enumerate(DRAWER_Z):
         dr = body.add_body(name=f"drawer_{k}", pos=[0, 0, z])
@@ -446,11 +425,6 @@ def _build_cabinet(body, dx, dy, h):
 
 def _build_fridge(body, dx, dy, h):
     col = (0.9, 0.9, 0.92, 1)
-    _box(body, "fridge_back", (-dx + 0.02, 0, h / 2), (0.02, dy, h / 2), col)
-    _box(body, "fridge_left", (0, dy - 0.02, h / 2), (dx, 0.02, h / 2), col)
-    _box(body, "fridge_right", (0, -dy + 0.02, h / 2), (dx, 0.02, h / 2), col)
-    _box(body, "fridge_top", (0, 0, h - 0.02), (dx, dy, 0.02), col)
-    _box(body, "fridge_base", (0, 0, 0.05), (dx, dy, 0.05), col)
     _box(body, "fridge_shelf", (0, 0, FRIDGE_SHELF - 0.01), (dx - 0.02, dy - 0.04, 0.01), col)
     _box(body, "fridge_shelf2", (0, 0, 1.15), (dx - 0.02, dy - 0.04, 0.01), col)
     door = body.add_body(name="fridge", pos=[dx + DOOR_HALF, -dy, 0])   # hinge on the right edge
@@ -522,31 +496,19 @@ class RearrangeEnv:
     | goal_polar      | (3,)      | goal from the base: distance m, sin and cos of its bearing  | room, [-1, 1] |
     | receptacle_open | (2,)      | obs="privileged" only: open fraction of the receptacle holding the target, of the one holding the goal; 1 on a surface | [0, 1] |
 
-    Action (float32, shape (10,); values in range are clipped to the bounds):
+    Action (float32, shape (10,); values in range are clipped to the bounds [-1, 1]): 0-6 arm joint target deltas
+    (x arm_delta rad), 7 base linear velocity forward (x lin_speed m/s), 8 base angular velocity counter-clockwise
+    (x ang_speed rad/s), 9 grip in {-1, 0, 1}: -1 release, 0 keep, +1 grasp.
 
-    | index | meaning                                         | bounds      | scale            |
-    |-------|-------------------------------------------------|-------------|------------------|
-    | 0-6   | arm joint target deltas                         | [-1, 1]     | arm_delta rad    |
-    | 7     | base linear velocity (forward)                  | [-1, 1]     | lin_speed m/s    |
-    | 8     | base angular velocity (counter-clockwise)       | [-1, 1]     | ang_speed rad/s  |
-    | 9     | grip: -1 release, 0 keep, +1 grasp              | {-1, 0, 1}  |                  |
+    Reward: the dense move-object reward of Appendix C.3, for the Decision Transformer; its terms, in
+    info["reward_terms"], sum to it: approach = 2 x decrease of the end effector - target distance, until the
+    target is held; carry = 2 x decrease of the target - goal distance, while it is held; pick = +1 the first time
+    the target is grasped; success = +10 on success; collision = -1e-4 x robot-scene contact force (N);
+    slack = -0.002 every step.
 
-    Reward (the dense move-object reward of Appendix C.3, for the Decision Transformer); its terms
-    are in info["reward_terms"] and sum to the reward:
-
-    | term      | value                                                                       |
-    |-----------|-----------------------------------------------------------------------------|
-    | approach  | 2 x decrease of the end effector - target distance, until the target is held |
-    | carry     | 2 x decrease of the target - goal distance, while it is held                 |
-    | pick      | +1 the first time the target is grasped                                      |
-    | success   | +10 on success                                                               |
-    | collision | -1e-4 x robot-scene contact force (N)                                        |
-    | slack     | -0.002 every step                                                            |
-
-    Success: the target rests within 15 cm of the goal and is not held (terminated). Failure
-    (terminated, info["failure"]): instantaneous contact force above force_limit ("collision"),
-    or accumulated force above accum_force_limit ("collision_accum"). After max_steps:
-    truncated, info["failure"] = "timeout".
+    Success: the target rests within 15 cm of the goal and is not held (terminated). Failure (terminated,
+    info["failure"]): instantaneous contact force above force_limit ("collision"), or accumulated force above
+    accum_force_limit ("collision_accum"). After max_steps: truncated, info["failure"] = "timeout".
     """
 
     def __init__(self, **kwargs):
@@ -567,8 +529,7 @@ class RearrangeEnv:
         self._rays = np.stack([u / f, -v / f, -np.ones_like(u)], -1).reshape(-1, 3)  # camera looks down -z
         self._geomgroup = np.ones(6, np.uint8)
         self._geomgroup[ROBOT_GROUP] = 0
-        self._ray_gid = np.zeros(n * n, np.int32)
-        self._ray_dist = np.zeros(n * n)
+        self._ray_gid, self._ray_dist = np.zeros(n * n, np.int32), np.zeros(n * n)
         self.timing = {"physics": 0.0, "depth": 0.0, "rest": 0.0}
 
     # --- model per layout ---
@@ -578,30 +539,26 @@ class RearrangeEnv:
             layout = make_layout(layout_id)
             m = build_spec(layout).compile()
             d = mujoco.MjData(m)
+            qadr = lambda joints: np.array([m.jnt_qposadr[m.joint(j).id] for j in joints])   # into qpos
+            dadr = lambda joints: np.array([m.jnt_dofadr[m.joint(j).id] for j in joints])    # into qvel
+            arm, base = [f"arm_{i}" for i in range(7)], ("base_x", "base_y", "base_yaw")
+            objs, free = [f"obj_{k}" for k in range(N_OBJECTS)], [f"obj_{k}_free" for k in range(N_OBJECTS)]
+            rec = ("drawer_0_slide", "drawer_1_slide", "fridge_hinge")
             ids = {
-                "arm_q": np.array([m.jnt_qposadr[m.joint(f"arm_{i}").id] for i in range(7)]),
-                "arm_v": np.array([m.jnt_dofadr[m.joint(f"arm_{i}").id] for i in range(7)]),
-                "arm_act": np.array([m.actuator(f"arm_{i}_pos").id for i in range(7)]),
-                "base_q": np.array([m.jnt_qposadr[m.joint(n).id] for n in ("base_x", "base_y", "base_yaw")]),
-                "base_act": np.array([m.actuator(f"{n}_vel").id for n in ("base_x", "base_y", "base_yaw")]),
-                "obj_q": np.array([m.jnt_qposadr[m.joint(f"obj_{k}_free").id] for k in range(N_OBJECTS)]),
-                "obj_v": np.array([m.jnt_dofadr[m.joint(f"obj_{k}_free").id] for k in range(N_OBJECTS)]),
-                "obj_body": np.array([m.body(f"obj_{k}").id for k in range(N_OBJECTS)]),
-                "obj_geom": np.array([m.geom(f"obj_{k}_geom").id for k in range(N_OBJECTS)]),
-                "obj_eq": np.array([m.equality(f"suction_obj_{k}").id for k in range(N_OBJECTS)]),
-                "rec_q": np.array([m.jnt_qposadr[m.joint(j).id] for j in ("drawer_0_slide", "drawer_1_slide", "fridge_hinge")]),
-                "rec_v": np.array([m.jnt_dofadr[m.joint(j).id] for j in ("drawer_0_slide", "drawer_1_slide", "fridge_hinge")]),
-                "rec_hi": np.array([DRAWER_TRAVEL, DRAWER_TRAVEL, DOOR_RANGE]),
+                "arm_q": qadr(arm), "arm_v": dadr(arm), "arm_act": np.array([m.actuator(f"{n}_pos").id for n in arm]),
+                "base_q": qadr(base), "base_act": np.array([m.actuator(f"{n}_vel").id for n in base]),
+                "obj_q": qadr(free), "obj_v": dadr(free), "obj_body": np.array([m.body(o).id for o in objs]),
+                "obj_geom": np.array([m.geom(f"{o}_geom").id for o in objs]),
+                "obj_eq": np.array([m.equality(f"suction_{o}").id for o in objs]),
+                "rec_q": qadr(rec), "rec_v": dadr(rec), "rec_hi": np.array([DRAWER_TRAVEL, DRAWER_TRAVEL, DOOR_RANGE]),
                 "rec_body": np.array([m.body(r).id for r in RECEPTACLES]),
                 "rec_eq": np.array([m.equality(f"suction_{r}").id for r in RECEPTACLES]),
-                "handle_geom": np.array([m.geom(g).id for g in ("drawer_0_handle", "drawer_1_handle", "fridge_handle")]),
+                "handle_geom": np.array([m.geom(f"{r}_handle").id for r in RECEPTACLES]),
                 "handle_site": np.array([m.site(f"{r}_handle_site").id for r in RECEPTACLES]),
                 "ee_body": m.body("ee").id, "ee_site": m.site("ee_site").id, "cup": m.geom("cup").id,
-                "cam": m.camera("head_cam").id,
-                "is_robot": m.geom_group == ROBOT_GROUP,
+                "cam": m.camera("head_cam").id, "is_robot": m.geom_group == ROBOT_GROUP,
+                "occupancy": occupancy_grid(layout), "poses": interaction_poses(layout),   # static: computed once
             }
-            ids["occupancy"] = occupancy_grid(layout)        # static per layout: computed once
-            ids["poses"] = interaction_poses(layout)
             self._models[layout_id] = (layout, m, d, ids)
         return self._models[layout_id]
 
@@ -609,8 +566,7 @@ class RearrangeEnv:
 
     def reset(self, seed=None, options=None):
         """Start an episode: options={"episode": Episode}, else one drawn from `train` with the seed."""
-        options = options or {}
-        ep = options.get("episode")
+        ep = (options or {}).get("episode")
         if ep is None:
             ep = make_episodes("train", 1, seed=0 if seed is None else int(seed))[0]
         if not isinstance(ep, Episode):
@@ -629,20 +585,13 @@ class RearrangeEnv:
         mujoco.mj_forward(m, d)
         xy, _, rot = self._base_frame()
         self._ee_rest = rot @ (d.site_xpos[ids["ee_site"]] - [*xy, 0.0])
-        self._obj_start = np.array(ep.objects[ep.target])
-        self._goal = np.array(ep.goal)
-        self._held = -1                 # index of the held object, -1 none
-        self._handle = -1               # index of the grasped handle (receptacle), -1 none
-        self._picked = False
+        self._obj_start, self._goal = np.array(ep.objects[ep.target]), np.array(ep.goal)
+        self._held = self._handle = -1    # index of the held object, of the grasped handle (receptacle); -1 none
         self._in_receptacle = ep.obj_receptacle   # the target counts as inside until it is picked
-        self._steps = 0
-        self._accum_force = 0.0
-        self._open_steps = 0
-        self._perturbed = False
-        self._done = False
+        self._steps, self._accum_force, self._open_steps = 0, 0.0, 0
+        self._picked = self._perturbed = self._done = False
         self._prev = self._distances()
-        obs = self._observe()
-        return obs, self._info(0.0, False, None, {})
+        return self._observe(), self._info(0.0, False, None, {})
 
     def step(self, action):
         if self._done:
@@ -665,46 +614,39 @@ class RearrangeEnv:
         d.ctrl[ids["base_act"]] = [v * np.cos(yaw), v * np.sin(yaw), w]
         t1 = time.perf_counter()
         mujoco.mj_step(m, d, nstep=FRAME_SKIP)
-        force = self._contact_force()           # sampled at 30 Hz: sustained pushes, not impulses
+        # total robot-scene normal force (N), sampled at 30 Hz: sustained pushes, not impulses
+        force = float(self.robot_contacts()[0].sum()) if d.ncon else 0.0
         # positions, contacts and forces of the new state (mj_step leaves those of the last substep's
         # start): the observation, the expert and a state restored into another env then agree
         mujoco.mj_forward(m, d)
-        t2 = time.perf_counter()
-        self.timing["physics"] += t2 - t1
+        self.timing["physics"] += time.perf_counter() - t1
         self._steps += 1
         self._accum_force += force
         self._perturb()
         dist = self._distances()
+        success = self._success(dist[1])
         held_target = self._held == self.episode.target
-        terms = {
-            "approach": 0.0 if self._picked else 2.0 * (self._prev[0] - dist[0]),
-            "carry": 2.0 * (self._prev[1] - dist[1]) if held_target else 0.0,
-            "pick": 0.0, "success": 0.0,
-            "collision": -1e-4 * force, "slack": -0.002,
-        }
+        terms = {"approach": 0.0 if self._picked else 2.0 * (self._prev[0] - dist[0]),
+                 "carry": 2.0 * (self._prev[1] - dist[1]) if held_target else 0.0, "pick": 0.0,
+                 "success": 10.0 if success else 0.0, "collision": -1e-4 * force, "slack": -0.002}
         if held_target and not self._picked:
-            self._picked = True
-            self._in_receptacle = 0
+            self._picked, self._in_receptacle = True, 0
             terms["pick"] = 1.0
         self._prev = dist
-        success = self._success()
         failure = None
         if force > cfg.force_limit:
             failure = "collision"
         elif self._accum_force > cfg.accum_force_limit:
             failure = "collision_accum"
-        if success:
-            terms["success"] = 10.0
         terminated = success or failure is not None
         truncated = not terminated and self._steps >= cfg.max_steps
         if truncated:
             failure = "timeout"
         self._done = terminated or truncated
-        reward = float(sum(terms.values()))
         t3 = time.perf_counter()
         obs = self._observe()
         self.timing["rest"] += (t1 - t0) + (time.perf_counter() - t3)
-        return obs, reward, terminated, truncated, self._info(force, success, failure, terms)
+        return obs, float(sum(terms.values())), terminated, truncated, self._info(force, success, failure, terms)
 
     # --- mechanics ---
 
@@ -718,31 +660,21 @@ class RearrangeEnv:
                 d.eq_active[ids["rec_eq"][self._handle]] = 0
             self._held = self._handle = -1
         elif cmd == 1 and self._held < 0 and self._handle < 0:
-            best, best_dist = None, GRASP_DIST
-            for kind, geoms in (("obj", ids["obj_geom"]), ("rec", ids["handle_geom"])):
-                for k, g in enumerate(geoms):
-                    dist = mujoco.mj_geomDistance(m, d, ids["cup"], int(g), GRASP_DIST, None)
-                    if dist < best_dist:
-                        best, best_dist = (kind, k), dist
-            if best is None:
+            near = [(mujoco.mj_geomDistance(m, d, ids["cup"], int(g), GRASP_DIST, None), kind, k)
+                    for kind, geoms in (("obj", ids["obj_geom"]), ("rec", ids["handle_geom"]))
+                    for k, g in enumerate(geoms)]
+            dist, kind, k = min(near, key=lambda c: c[0])     # the nearest object or handle, the first of equals
+            if dist >= GRASP_DIST:
                 return
-            kind, k = best
-            ee = ids["ee_body"]
-            if kind == "obj":
-                b = ids["obj_body"][k]
-                eq = ids["obj_eq"][k]
-                q1inv = np.zeros(4)
+            ee, b, eq = ids["ee_body"], ids[f"{kind}_body"][k], ids[f"{kind}_eq"][k]
+            if kind == "obj":                   # weld: anchor at the cup, the object's pose relative to it
+                q1inv, relpos, relquat = np.zeros(4), np.zeros(3), np.zeros(4)
                 mujoco.mju_negQuat(q1inv, d.xquat[ee])
-                relpos, relquat = np.zeros(3), np.zeros(4)
                 mujoco.mju_rotVecQuat(relpos, d.xpos[b] - d.xpos[ee], q1inv)
                 mujoco.mju_mulQuat(relquat, q1inv, d.xquat[b])
-                m.eq_data[eq, 0:3] = 0
-                m.eq_data[eq, 3:6] = relpos
-                m.eq_data[eq, 6:10] = relquat
+                m.eq_data[eq, 0:10] = np.r_[0.0, 0.0, 0.0, relpos, relquat]
                 self._held = k
             else:
-                b = ids["rec_body"][k]
-                eq = ids["rec_eq"][k]
                 p = d.site_xpos[ids["ee_site"]]     # the contact point, in both bodies' frames
                 m.eq_data[eq, 0:3] = d.xmat[ee].reshape(3, 3).T @ (p - d.xpos[ee])
                 m.eq_data[eq, 3:6] = d.xmat[b].reshape(3, 3).T @ (p - d.xpos[b])
@@ -764,22 +696,16 @@ class RearrangeEnv:
         # elliptic cones: a contact's first constraint row is its normal force
         return np.abs(d.efc_force[adr[mask]]), d.contact.pos[:d.ncon][mask]
 
-    def _contact_force(self):
-        """Total normal force between robot and scene in this physics step (N)."""
-        return float(self.robot_contacts()[0].sum()) if self.data.ncon else 0.0
-
     def _perturb(self):
         """Sec. 5.4: the receptacle holding the target snaps shut once, after being open a while."""
         r = self.episode.obj_receptacle
         if not self.config.perturb or self._perturbed or r == 0 or self._picked:
             return
-        if self.open_fraction()[r - 1] < OPEN_FRACTION:
-            return
-        self._open_steps += 1
-        if self._open_steps < self.config.perturb_after:
-            return
-        self.close_receptacle(r - 1)
-        self._perturbed = True
+        if self.open_fraction()[r - 1] >= OPEN_FRACTION:
+            self._open_steps += 1
+            if self._open_steps >= self.config.perturb_after:
+                self.close_receptacle(r - 1)
+                self._perturbed = True
 
     # --- perturbation events (the Sec. 5.4 test, and collect.py's recoveries) ---
 
@@ -809,8 +735,7 @@ class RearrangeEnv:
         d, ids = self.data, self.ids
         b = ids["rec_body"][k]
         rel = d.xmat[b].reshape(3, 3).T @ (d.xpos[ids["obj_body"][j]] - d.xpos[b])
-        half = CAB_SIZE[0] / 2, CAB_SIZE[1] / 2
-        return abs(rel[0]) < half[0] and abs(rel[1]) < half[1] and -0.02 < rel[2] < 0.15
+        return abs(rel[0]) < CAB_SIZE[0] / 2 and abs(rel[1]) < CAB_SIZE[1] / 2 and -0.02 < rel[2] < 0.15
 
     def drop(self):
         """Let go of whatever the cup holds."""
@@ -849,8 +774,7 @@ class RearrangeEnv:
     def depth(self):
         """(H, W, 1) float32 depth image in [0, 1] by ray casting from the head camera."""
         m, d, ids = self.model, self.data, self.ids
-        n = self.config.depth_size
-        c = ids["cam"]
+        n, c = self.config.depth_size, ids["cam"]
         vec = self._rays @ d.cam_xmat[c].reshape(3, 3).T       # z-component 1: dist is z-depth
         mujoco.mj_multiRay(m, d, d.cam_xpos[c], vec.ravel(), self._geomgroup, 1, -1,
                            self._ray_gid, self._ray_dist, None, n * n, self.config.depth_max)
@@ -866,15 +790,13 @@ class RearrangeEnv:
         xy, yaw, rot = self._base_frame()
         rel = rot @ np.stack([ee - [*xy, 0.0], self._obj_start - ee, self._goal - ee], 1)   # (3, 3)
         obs = {
-            "depth": depth,
-            "joint": d.qpos[ids["arm_q"]].astype(np.float32),
+            "depth": depth, "joint": d.qpos[ids["arm_q"]].astype(np.float32),
             "joint_target": self._arm_target.astype(np.float32),
-            # Habitat's IsHoldingSensor reads grasp_mgr.is_grasped, true for an object or a
-            # handle: without it a pull that lost the handle looks like one that holds it
+            # Habitat's IsHoldingSensor reads grasp_mgr.is_grasped, true for an object or a handle:
+            # without it a pull that lost the handle looks like one that holds it
             "is_holding": np.array([float(self._held >= 0 or self._handle >= 0)], np.float32),
             "ee_rest": (rel[:, 0] - self._ee_rest).astype(np.float32),
-            "obj_start": rel[:, 1].astype(np.float32),
-            "goal": rel[:, 2].astype(np.float32),
+            "obj_start": rel[:, 1].astype(np.float32), "goal": rel[:, 2].astype(np.float32),
             "obj_start_polar": self._polar(self._obj_start, xy, yaw).astype(np.float32),
             "goal_polar": self._polar(self._goal, xy, yaw).astype(np.float32),
         }
@@ -899,33 +821,28 @@ class RearrangeEnv:
         dist = float(np.linalg.norm(rel))
         if v[2] >= 0 or max(abs(v[0]), abs(v[1])) > -v[2] or dist > self.config.depth_max:
             return False                                          # 90 deg field of view: tan 45 = 1
-        gid = np.zeros(1, np.int32)
-        hit = mujoco.mj_ray(m, d, d.cam_xpos[c], rel / dist, self._geomgroup, 1, -1, gid)
+        hit = mujoco.mj_ray(m, d, d.cam_xpos[c], rel / dist, self._geomgroup, 1, -1, np.zeros(1, np.int32))
         return hit < 0 or hit > dist - margin
 
     def open_fraction(self):
         """(3,) how open each receptacle is, in [0, 1] (RECEPTACLES order)."""
-        q = self.data.qpos[self.ids["rec_q"]]
-        return np.clip(q / self.ids["rec_hi"], 0.0, 1.0)
+        return np.clip(self.data.qpos[self.ids["rec_q"]] / self.ids["rec_hi"], 0.0, 1.0)
 
     def _distances(self):
         d, ids = self.data, self.ids
         obj = d.xpos[ids["obj_body"][self.episode.target]]
         return (float(np.linalg.norm(d.site_xpos[ids["ee_site"]] - obj)), float(np.linalg.norm(obj - self._goal)))
 
-    def _success(self):
-        d, ids = self.data, self.ids
-        k = self.episode.target
-        obj = d.xpos[ids["obj_body"][k]]
-        resting = np.linalg.norm(d.qvel[ids["obj_v"][k]:ids["obj_v"][k] + 3]) < 0.05
-        return self._held != k and resting and float(np.linalg.norm(obj - self._goal)) < SUCCESS_DIST
+    def _success(self, goal_dist):
+        k, v = self.episode.target, self.ids["obj_v"]
+        resting = np.linalg.norm(self.data.qvel[v[k]:v[k] + 3]) < 0.05
+        return self._held != k and resting and goal_dist < SUCCESS_DIST
 
     def skill_gt(self):
-        """Appendix D rule on the privileged state: the skill the task needs now.
-
-        Before the pick, the next sub-goal is opening the goal's receptacle (it cannot be opened
-        while the cup holds the object), then opening the object's, then the pick; after it, the
-        place. The sub-goal's skill applies within skill_radius of its location, else navigate."""
+        """Appendix D rule on the privileged state: the skill the task needs now. Before the pick, the next
+        sub-goal is opening the goal's receptacle (it cannot be opened while the cup holds the object), then
+        opening the object's, then the pick; after it, the place. The sub-goal's skill applies within
+        skill_radius of its location, else navigate."""
         ep, opened = self.episode, self.open_fraction() >= OPEN_FRACTION
         base = self.data.qpos[self.ids["base_q"][:2]]
         if self._held == ep.target:
@@ -946,44 +863,32 @@ class RearrangeEnv:
         return int(self._in_receptacle)
 
     def privileged(self):
-        """Simulator state for the expert and the labels; never part of the observation."""
+        """Simulator state for the expert and the labels; never part of the observation. base: x, y, yaw;
+        objects: (N_OBJECTS, 3); handles: (3, 3) in RECEPTACLES order; occupancy: blocked cells for the base centre."""
         d, ids = self.data, self.ids
-        return {
-            "base": d.qpos[ids["base_q"]].copy(),                      # x, y, yaw
-            "arm": d.qpos[ids["arm_q"]].copy(),
-            "arm_target": self._arm_target.copy(),
-            "ee": d.site_xpos[ids["ee_site"]].copy(),
-            "objects": d.xpos[ids["obj_body"]].copy(),                 # (N_OBJECTS, 3)
-            "target": self.episode.target,
-            "obj_start": self._obj_start.copy(),
-            "goal": self._goal.copy(),
-            "held": self._held, "handle": self._handle, "picked": self._picked,
-            "handles": d.site_xpos[ids["handle_site"]].copy(),         # (3, 3) RECEPTACLES order
-            "open_fraction": self.open_fraction(),
-            "obj_receptacle": self._in_receptacle,
-            "goal_receptacle": self.episode.goal_receptacle,
-            "occupancy": ids["occupancy"],                             # blocked cells for the base centre
-            "grid_res": GRID_RES,
-            "poses": ids["poses"],
-            "layout": self.layout,
-            "episode": self.episode,
-        }
+        return {"base": d.qpos[ids["base_q"]].copy(), "arm": d.qpos[ids["arm_q"]].copy(),
+                "arm_target": self._arm_target.copy(), "ee": d.site_xpos[ids["ee_site"]].copy(),
+                "objects": d.xpos[ids["obj_body"]].copy(), "target": self.episode.target,
+                "obj_start": self._obj_start.copy(), "goal": self._goal.copy(),
+                "held": self._held, "handle": self._handle, "picked": self._picked,
+                "handles": d.site_xpos[ids["handle_site"]].copy(), "open_fraction": self.open_fraction(),
+                "obj_receptacle": self._in_receptacle, "goal_receptacle": self.episode.goal_receptacle,
+                "occupancy": ids["occupancy"], "grid_res": GRID_RES, "poses": ids["poses"], "layout": self.layout,
+                "episode": self.episode}
 
     def _info(self, force, success, failure, terms):
         return {"success": bool(success), "failure": failure, "skill_gt": self.skill_gt(),
                 "receptacle": self.receptacle_label(), "receptacle_open": self._receptacle_open(),
-                "reward_terms": terms, "picked": self._picked,
-                "holding": self._held >= 0, "perturbed": self._perturbed, "contact_force": float(force),
-                "steps": self._steps}
+                "reward_terms": terms, "picked": self._picked, "holding": self._held >= 0, "perturbed": self._perturbed,
+                "contact_force": float(force), "steps": self._steps}
 
 
 # --- Gymnasium ---
 
 def gym_env(**config):
-    """RearrangeEnv as a gymnasium.Env, with observation_space and action_space, for the tools written
-    for Gymnasium (it passes gymnasium.utils.env_checker.check_env). Gymnasium is imported here: the
-    stages above do not need it. The grip, a Box coordinate there, is rounded to release, keep or
-    grasp; reset(options={"episode": Episode}) picks the episode, as RearrangeEnv.reset does."""
+    """RearrangeEnv as a gymnasium.Env, with observation_space and action_space, for the tools written for
+    Gymnasium (it passes gymnasium.utils.env_checker.check_env); Gymnasium is imported here only. The grip, a Box
+    coordinate there, is rounded to release, keep or grasp; reset(options={"episode": Episode}) picks the episode."""
     import gymnasium
     from gymnasium import spaces
 

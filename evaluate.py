@@ -1,18 +1,15 @@
 """Evaluate policies by rollouts: the paper's Table 1 (success by difficulty) and Table 2 (perturbation).
 
-A policy is a checkpoint written by train.py or ppo.py, several checkpoints of one method joined
-by commas (training seeds: the table shows mean +- std over them), the scripted expert
-(`expert:oracle`, our M3 (Oracle): the plan comes from the simulator; `expert:fixed`: nav, pick,
-nav, place, like M3; `expert:tpsrl`: that plan with the base still while the arm works, as TP-SRL),
-or BC-Modular's skill policies under a planner, `modular:fixed:STEM` and `modular:oracle:STEM`
-(BC-Modular (Oracle); STEM_<skill>.pt from train.py --skill). Episodes come
-from a fixed list, env.make_episodes(split, n, seed=0), and each rollout's reset seed is a function
-of (split, episode, rollout seed); a worker runs consecutive episodes of the list in lock-step
-batches (--batch), one policy call per step for all of them. A rollout is a function of its
-episode, rollout seed and policy alone, not of --batch or --workers (model.Policy runs the network
-at a fixed batch: a CPU's kernels round differently at other sizes, EXPERIMENTS.md R46), so numbers
-are comparable across runs. Each finished rollout is appended to --out's .jsonl at once; after an
-interruption, the same command with --resume runs only the missing ones and writes the same tables.
+A policy is a checkpoint of train.py or ppo.py, checkpoints of one method joined by commas (training seeds: the
+table shows mean +- std over them), a scripted expert (`expert:oracle`, our M3 (Oracle): the plan comes from the
+simulator; `expert:fixed`: nav, pick, nav, place, like M3; `expert:tpsrl`: that plan with the base still while
+the arm works, as TP-SRL), or BC-Modular's skill policies (STEM_<skill>.pt of train.py --skill) under a planner,
+`modular:fixed:STEM` and `modular:oracle:STEM` (BC-Modular (Oracle)). Episodes come from a fixed list,
+env.make_episodes(split, n, seed=0), reset seeds from (split, episode, rollout seed); a worker runs consecutive
+episodes in lock-step batches (--batch), one policy call per step. A rollout depends on its episode, rollout seed
+and policy alone, not on --batch or --workers (model.Policy runs the network at a fixed batch: a CPU's kernels
+round differently at other sizes, EXPERIMENTS.md R46). Each finished rollout goes to --out's .jsonl at once;
+after an interruption, the same command with --resume runs only the missing ones and writes the same tables.
 
     python evaluate.py --policy ckpt/st.pt --policy expert:oracle --policy expert:fixed \\
                        --episodes 400 --seeds 3 --workers 2                  # Table 1, unseen split
@@ -24,23 +21,23 @@ interruption, the same command with --resume runs only the missing ones and writ
     python evaluate.py --policy ckpt/st.pt --policy ckpt/ctx15.pt --split both --difficulty easy \\
                        --plot results/fig3.png                               # Sec. 5.5 analysis, Fig. 3
 
-Table 1 (Sec. 5.3): success in % on All, Easy, Hard and Very Hard episodes; with one checkpoint
-the +- is over rollout seeds (--seeds), with several over training seeds. Table 2 (Sec. 5.4): on
-episodes whose target starts in a closed drawer, the rate of picking it and the skill accuracy
-against the Appendix D rule, without and with the perturbation. An oracle expert beside each
-rollout labels every visited state with its skill, for two more measures of the skill module: its
-accuracy against that label, and its lock-in (the share of steps of easy episodes on which it
-predicts an opening skill). Results go to --out (JSON with every rollout) and its .md (the tables).
+Table 1 (Sec. 5.3): success in % on All, Easy, Hard and Very Hard episodes; the +- is over rollout seeds
+(--seeds) with one checkpoint, over training seeds with several. Table 2 (Sec. 5.4): on episodes whose target
+starts in a closed drawer, the rate of picking it and the skill accuracy against the Appendix D rule, without and
+with the perturbation. An oracle expert beside each rollout labels every state with its skill for two more
+measures of the skill module: accuracy against that label, and lock-in (the share of easy episodes' steps on
+which it predicts an opening skill). Results go to --out (JSON, every rollout) and its .md (the tables).
 """
 import argparse
-import dataclasses
 import json
 import multiprocessing as mp
 import os
 import platform
 import sys
 import time
-from dataclasses import dataclass, field
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from itertools import product
 
 import mujoco
 import numpy as np
@@ -54,8 +51,7 @@ import model
 @dataclass
 class Config:
     policy: list = field(default_factory=list)
-    """a checkpoint, checkpoints joined by commas (training seeds), expert:oracle|fixed|tpsrl, or
-    modular:fixed:STEM / modular:oracle:STEM (BC-Modular: STEM_<skill>.pt of train.py --skill); repeatable"""
+    """CKPT[,CKPT...] (training seeds), expert:oracle|fixed|tpsrl or modular:fixed|oracle:STEM; repeatable"""
     split: str = "unseen"
     """unseen, seen, or both (side by side, as in the paper)"""
     episodes: int = 400
@@ -71,8 +67,7 @@ class Config:
     perturb_after: int = 0
     """with --perturb: steps the receptacle stays open before it snaps shut; 0 keeps the env's 50"""
     episode_seed: int = 0
-    """seed of the episode lists and reset seeds: 0 is the list every recorded result uses (and was
-    tuned on); another gives a fresh test set of the same mix that no experiment has seen"""
+    """seed of episode lists and reset seeds: 0 for every recorded result (tuned on), else a fresh set, same mix"""
     difficulty: str = ""
     """only episodes of this difficulty (easy, hard, very_hard): the first N of the split that have it"""
     max_steps: int = 0
@@ -82,9 +77,8 @@ class Config:
     out: str = "results/eval.json"
     """JSON results; the Markdown tables go next to it with the suffix .md"""
     picture: str = ""
-    """draw the first --policy solving the first hard or very hard episode of the list it solves to this
-    PNG: its path from above coloured by its predicted skill, beside frames where the skill changes
-    (matplotlib; MUJOCO_GL=egl for RGB frames, else head depth); no tables"""
+    """draw to this PNG the first --policy solving the first hard or very hard episode it solves, no tables: its path
+    from above coloured by skill, beside frames where the skill changes (matplotlib; MUJOCO_GL=egl: RGB, else depth)"""
     log_every: float = 10.0
     """seconds between progress lines"""
     plot: str = ""
@@ -129,7 +123,7 @@ def eval_episodes(split, n, perturb, difficulty="", episode_seed=EVAL_SEED):
 # --- policies ---
 
 def parse_method(spec, cfg):
-    """One --policy value -> {name, spec, variant, members: [(ref, env_config)]}."""
+    """One --policy value -> {name, spec, variant, members: [(ref, env_config)], setting (checkpoints only)}."""
     overrides = {"max_steps": cfg.max_steps} if cfg.max_steps else {}
     if spec.startswith("expert:"):
         plan = spec.split(":", 1)[1]
@@ -137,63 +131,52 @@ def parse_method(spec, cfg):
             raise ValueError(f"unknown expert plan in {spec!r}: expected expert:oracle, expert:fixed or expert:tpsrl")
         kwargs = dict(overrides, **({"depth_size": cfg.depth_size} if cfg.depth_size else {}))
         return {"name": spec, "spec": spec, "variant": f"expert_{plan}",
-                "members": [(spec, dataclasses.asdict(env.EnvConfig(**kwargs)))]}
-    if spec.startswith("modular:"):   # modular:PLAN:STEM[,STEM]: STEM_<skill>.pt of train.py --skill
-        _, plan, stems = (spec.split(":", 2) + ["", ""])[:3]
-        if plan not in ("oracle", "fixed") or not stems:
+                "members": [(spec, asdict(env.EnvConfig(**kwargs)))]}
+    members, variants, modular, label = [], set(), spec.startswith("modular:"), spec
+    if modular:   # modular:PLAN:STEM[,STEM]: STEM_<skill>.pt of train.py --skill
+        _, plan, label = (spec.split(":", 2) + ["", ""])[:3]
+        if plan not in ModularBatch.SKILLS or not label:
             raise ValueError(f"{spec!r}: expected modular:fixed:STEM or modular:oracle:STEM[,STEM]")
-        members = []
-        for stem in stems.split(","):
-            for s in ("navigate", "pick", "place") + (("open_drawer", "open_fridge") if plan == "oracle" else ()):
+        for stem in label.split(","):
+            for s in ModularBatch.SKILLS[plan]:
                 policy = model.load_policy(f"{stem}_{s}.pt")
                 if policy.variant != "no_skill" or policy.train_config.get("skill") != s:
                     raise ValueError(f"{stem}_{s}.pt is not a BC-Modular {s} policy (train.py --variant "
                                      f"no_skill --skill {s})")
             members.append((f"modular:{plan}:{stem}", dict(policy.env_config, **overrides)))
-        variant = "bc_modular" + ("_oracle" if plan == "oracle" else "")
-        return {"name": f"{variant} ({stems})", "spec": spec, "variant": variant, "members": members,
-                "setting": {"variant": variant, "context": policy.cfg.context, "memory": policy.cfg.memory,
-                            "n_demos": policy.train_config.get("n_demos"), "segments": "",
-                            "epochs": policy.train_config.get("epochs")}}
-    members, variants = [], set()
-    for path in spec.split(","):
-        policy = model.load_policy(path)
-        variants.add(policy.train_config.get("variant") or policy.variant)   # ppo.py's "mono" is a no_skill net
-        members.append((path, dict(policy.env_config, **overrides)))
+        variants.add("bc_modular" + ("_oracle" if plan == "oracle" else ""))
+    else:
+        for path in spec.split(","):
+            policy = model.load_policy(path)
+            variants.add(policy.train_config.get("variant") or policy.variant)   # ppo.py's "mono": a no_skill net
+            members.append((path, dict(policy.env_config, **overrides)))
     if len(variants) > 1:
         raise ValueError(f"{spec}: checkpoints of different variants {sorted(variants)} in one row")
-    variant = variants.pop()
-    trained = policy.train_config              # the last member's: training seeds share the rest
+    variant, trained = variants.pop(), policy.train_config   # the last member's: training seeds share the rest
+    segments = "" if modular else trained.get("segments") or ""
     setting = {"variant": variant, "context": policy.cfg.context, "memory": policy.cfg.memory,
-               "n_demos": trained.get("n_demos"), "segments": trained.get("segments") or "", "epochs": trained.get("epochs")}
-    return {"name": f"{variant} ({spec})", "spec": spec, "variant": variant, "members": members,
-            "setting": setting}
+               "n_demos": trained.get("n_demos"), "segments": segments, "epochs": trained.get("epochs")}
+    return {"name": f"{variant} ({label})", "spec": spec, "variant": variant, "members": members, "setting": setting}
 
 
 # --- one rollout ---
 
-def rollout(policy, envs, episodes, seeds, on_step=None):
-    """Run episodes in lock-step, episode i in envs[i], one act_batch call for all -> one result
-    dict per episode. The policy gets the previous step's reward (read by the dt variants only).
-    The policy's skill is scored against two labels of the same state: the Appendix D rule
-    (info["skill_gt"]) and the skill an oracle expert chooses there (its action is dropped).
-    A finished episode's env stands still while the others go on; on_step sees episode 0's obs."""
+def rollout(policy, envs, episodes, seeds):
+    """Run episodes in lock-step, episode i in envs[i], one act_batch call for all -> one result dict per
+    episode. The policy gets the previous step's reward (read by the dt variants only). Its skill is scored
+    against two labels of the same state: the Appendix D rule (info["skill_gt"]) and the skill an oracle
+    expert chooses there (its action is dropped). A finished episode's env stands still while others go on."""
     n = len(episodes)
-    obs, infos = map(list, zip(*[e.reset(seed=s, options={"episode": ep})
-                                 for e, ep, s in zip(envs, episodes, seeds)]))
+    obs, infos = map(list, zip(*[e.reset(seed=s, options={"episode": ep}) for e, ep, s in zip(envs, episodes, seeds)]))
     policy.reset()
-    labellers = [expert.Expert(e, plan="oracle") for e in envs[:n]]
-    for x in labellers:
-        x.reset()
-    reward, total, steps = [0.0] * n, [0.0] * n, [0] * n
+    labellers = ExpertBatch(envs[:n], "oracle")
+    labellers.reset()
+    reward, total, steps, done = [0.0] * n, [0.0] * n, [0] * n, [False] * n
     predicted, correct, correct_expert, opening = [0] * n, [0] * n, [0] * n, [0] * n
-    done = [False] * n
     while not all(done):
-        if on_step and not done[0]:
-            on_step(obs[0])
         actions, skills = policy.act_batch(obs, reward)
         for i in (i for i in range(n) if not done[i]):
-            label = labellers[i].act(obs[i])[1]
+            label = labellers.experts[i].act(obs[i])[1]
             if skills[i] >= 0:                 # variants without a skill module return -1
                 predicted[i] += 1
                 correct[i] += int(skills[i]) == int(infos[i]["skill_gt"])
@@ -203,11 +186,10 @@ def rollout(policy, envs, episodes, seeds, on_step=None):
             total[i], steps[i], done[i] = total[i] + reward[i], steps[i] + 1, terminated or truncated
     # Where each episode ended, to tell a failed place from a dropped or never-carried object.
     ends = [e.privileged() for e in envs[:n]]
-    return [{"index": int(ep.index), "difficulty": ep.difficulty, "kind": ep.kind,
-             "success": bool(info["success"]), "picked": bool(info["picked"]), "perturbed": bool(info["perturbed"]),
-             "failure": info["failure"], "steps": steps[i], "skill_predicted": predicted[i],
-             "skill_correct": correct[i], "skill_correct_expert": correct_expert[i],
-             "skill_opening": opening[i], "return": float(total[i]),
+    return [{"index": int(ep.index), "difficulty": ep.difficulty, "kind": ep.kind, "success": bool(info["success"]),
+             "picked": bool(info["picked"]), "perturbed": bool(info["perturbed"]), "failure": info["failure"],
+             "steps": steps[i], "skill_predicted": predicted[i], "skill_correct": correct[i],
+             "skill_correct_expert": correct_expert[i], "skill_opening": opening[i], "return": float(total[i]),
              "held_at_end": bool(end["held"] == ep.target),
              "goal_distance_at_end": float(np.linalg.norm(end["objects"][ep.target] - end["goal"]))}
             for i, (ep, info, end) in enumerate(zip(episodes, infos, ends))]
@@ -229,33 +211,31 @@ class ExpertBatch:
 
 
 class ModularBatch:
-    """BC-Modular (Sec. 5.2, Appendix C): one policy per skill (STEM_<skill>.pt, train.py --skill),
-    run in turn by a task planner that reads the simulator. plan="fixed": navigate, pick, navigate,
-    place; plan="oracle" (BC-Modular (Oracle)): first navigate to and open the goal's, then the
-    object's receptacle if closed at the start (the expert's order). A skill ends on its planner
-    condition (arrived; target held; target let go; receptacle open, handle let go, arm folded) or
-    on M3's timeout (navigation 500 steps, the others 200), and, as in the paper, a failed skill is
-    not run again. Each skill starts from a fresh context, as its policy was trained."""
+    """BC-Modular (Sec. 5.2, Appendix C): a policy per skill (STEM_<skill>.pt, train.py --skill), run in turn
+    by a task planner that reads the simulator. plan="fixed": navigate, pick, navigate, place; plan="oracle"
+    (BC-Modular (Oracle)): first navigate to and open the goal's, then the object's receptacle if closed at the
+    start (the expert's order). A skill ends on its planner condition (arrived; target held; target let go;
+    receptacle open, handle let go, arm folded) or on M3's timeout (navigation 500 steps, the others 200); as in
+    the paper, a failed skill is not run again. Each skill starts from a fresh context, as its policy was trained."""
 
+    SKILLS = {"fixed": ("navigate", "pick", "place"),
+              "oracle": ("navigate", "pick", "place", "open_drawer", "open_fridge")}
     TIMEOUT = {"navigate": 500, "pick": 200, "place": 200, "open_drawer": 200, "open_fridge": 200}
 
     def __init__(self, envs, stem, plan):
-        skills = ("navigate", "pick", "place") + (("open_drawer", "open_fridge") if plan == "oracle" else ())
-        nets = {s: model.load_policy(f"{stem}_{s}.pt") for s in skills}
+        nets = {s: model.load_policy(f"{stem}_{s}.pt") for s in self.SKILLS[plan]}
         self.envs, self.plan = envs, plan
         self.policies = [{s: model.Policy(p.model, p.env_config, p.rtg_max) for s, p in nets.items()} for _ in envs]
         self.probes = [expert.Expert(e) for e in envs]   # its geometry tells where the robot stands
 
     def reset(self):
-        self.todo, self.steps = [], []
+        self.todo, self.steps = [], [0] * len(self.envs)
         for e, probe in zip(self.envs, self.probes):
-            p = e.privileged()
-            ep, todo = p["episode"], []
-            for r in (ep.goal_receptacle, ep.obj_receptacle) if self.plan == "oracle" else ():
+            p, todo = e.privileged(), []
+            for r in (p["episode"].goal_receptacle, p["episode"].obj_receptacle) if self.plan == "oracle" else ():
                 if r and p["open_fraction"][r - 1] < expert.NEED_OPEN:
                     todo += [("navigate", r - 1), (probe.open_skill(r - 1), r - 1)]
             self.todo.append(todo + [("navigate", "pick"), ("pick", None), ("navigate", "place"), ("place", None)])
-            self.steps.append(0)
         for policies in self.policies:
             for pol in policies.values():
                 pol.reset()
@@ -332,24 +312,18 @@ def init_worker():
 
 def summarize(rollouts):
     """Metrics of one unit (one checkpoint, one rollout seed, one split, one condition), in %."""
-    def pct(num, den):
-        return 100.0 * num / den if den else None
-    out = {}
-    for key, _ in GROUPS:
-        chosen = [r for r in rollouts if key == "all" or r["difficulty"] == key]
-        out[f"success_{key}"] = pct(sum(r["success"] for r in chosen), len(chosen))
+    def pct(rows, key, den):
+        return 100.0 * sum(r[key] for r in rows) / den if den else None
+    groups = {key: [r for r in rollouts if key == "all" or r["difficulty"] == key] for key, _ in GROUPS}
+    out = {f"success_{key}": pct(rows, "success", len(rows)) for key, rows in groups.items()}
     picked = [r for r in rollouts if r["picked"]]
-    out["picked"] = pct(len(picked), len(rollouts))
-    out["success_given_picked"] = pct(sum(r["success"] for r in picked), len(picked))
-    out["skill_accuracy"] = pct(sum(r["skill_correct"] for r in rollouts),
-                                sum(r["skill_predicted"] for r in rollouts))
-    out["skill_accuracy_expert"] = pct(sum(r["skill_correct_expert"] for r in rollouts),
-                                       sum(r["skill_predicted"] for r in rollouts))
     easy = [r for r in rollouts if r["kind"] == "easy"]   # lock-in: opening where nothing needs it
-    out["opening_share_easy"] = pct(sum(r["skill_opening"] for r in easy), sum(r["skill_predicted"] for r in easy))
-    out["perturbed"] = pct(sum(r["perturbed"] for r in rollouts), len(rollouts))
-    out["mean_length"] = float(np.mean([r["steps"] for r in rollouts]))
-    return out
+    n, predicted = len(rollouts), sum(r["skill_predicted"] for r in rollouts)
+    return dict(out, picked=pct(rollouts, "picked", n), success_given_picked=pct(picked, "success", len(picked)),
+                skill_accuracy=pct(rollouts, "skill_correct", predicted),
+                skill_accuracy_expert=pct(rollouts, "skill_correct_expert", predicted),
+                opening_share_easy=pct(easy, "skill_opening", sum(r["skill_predicted"] for r in easy)),
+                perturbed=pct(rollouts, "perturbed", n), mean_length=float(np.mean([r["steps"] for r in rollouts])))
 
 
 def spread(units, key):
@@ -371,10 +345,7 @@ def aggregate(method, rollouts):
             mine = [r for r in rollouts if r["member"] == ref and r["seed"] == seed]
             units.append(dict(member=ref, seed=seed, episodes=len(mine), **summarize(mine)))
     metrics = {key: spread(units, key) for key in units[0] if key not in ("member", "seed", "episodes")}
-    failures = {}
-    for r in rollouts:
-        reason = r["failure"] or ("none" if r["success"] else "unknown")
-        failures[reason] = failures.get(reason, 0) + 1
+    failures = Counter(r["failure"] or ("none" if r["success"] else "unknown") for r in rollouts)
     return dict(metrics, failures=dict(sorted(failures.items())), units=units)
 
 
@@ -387,9 +358,7 @@ def fmt(stat):
 
 
 def markdown(results):
-    cfg, splits = results["config"], results["splits"]
-    methods = results["methods"]
-    lines = []
+    cfg, splits, methods, lines = results["config"], results["splits"], results["methods"], []
 
     def table(title, header, rows):
         lines.extend([f"## {title}", "", "| " + " | ".join(header) + " |",
@@ -408,13 +377,12 @@ def markdown(results):
                     for m in methods]
             table(f"Table 2: picking the target and skill accuracy (%), {s}, {cfg['episodes']} episodes "
                   f"with the target in a closed drawer", header, rows)
+    details = dict(picked="Picked", success_given_picked="Success given picked",
+                   skill_accuracy="Skill accuracy (App. D rule)", skill_accuracy_expert="Skill accuracy (expert label)",
+                   opening_share_easy="Opening skill on easy", perturbed="Perturbed")
+    header = ["Method", "Condition", *details.values(), "Mean length", "Failures (last step)"]
     for s in splits:
-        header = ["Method", "Condition", "Picked", "Success given picked", "Skill accuracy (App. D rule)",
-                  "Skill accuracy (expert label)", "Opening skill on easy", "Perturbed", "Mean length",
-                  "Failures (last step)"]
-        keys = ("picked", "success_given_picked", "skill_accuracy", "skill_accuracy_expert", "opening_share_easy",
-                "perturbed")
-        rows = [[m["name"], c] + [fmt(r[k]) for k in keys]
+        rows = [[m["name"], c] + [fmt(r[k]) for k in details]
                 + [f"{r['mean_length']['mean']:.0f}", ", ".join(f"{k} {v}" for k, v in r["failures"].items())]
                 for m in methods for c, r in m["results"][s].items()]
         table(f"Details: {s}", header, rows)
@@ -452,7 +420,7 @@ def pyplot():
         matplotlib.use("Agg")                   # no display: draw to a file
         import matplotlib.pyplot as plt
     except ImportError as err:
-        raise ValueError("--plot and --picture need matplotlib (pip install matplotlib); the tables need nothing") from err
+        raise ValueError("--plot and --picture need matplotlib (pip install matplotlib); the tables do not") from err
     return plt
 
 
@@ -482,17 +450,15 @@ def plot_fig3(results, path):
         axes[0][col].set_title(title)
     axes[0][0].legend(title=results["config"]["difficulty"] or "all episodes")
     fig.tight_layout()
-    tmp = path + ".tmp"
-    fig.savefig(tmp, format="png", dpi=120)
-    os.replace(tmp, path)                       # atomic: no half-written PNG
+    fig.savefig(path + ".tmp", format="png", dpi=120)
+    os.replace(path + ".tmp", path)             # atomic: no half-written PNG
     plt.close(fig)
 
 
 # --- the README figure: one rollout from above, and frames ---
 
 def rgb_renderer(e, size=240):
-    """A third-person RGB view that follows the robot, or None where OpenGL is missing (MUJOCO_GL=egl
-    gives it without a display)."""
+    """A third-person RGB view following the robot, or None without OpenGL (MUJOCO_GL=egl needs no display)."""
     if not (os.environ.get("MUJOCO_GL") or os.environ.get("DISPLAY")):
         return None                             # GLFW, the default, needs a display
     try:
@@ -526,10 +492,9 @@ def record_rollout(policy, e, episode, seed, min_run=10):
     while not done:
         actions, z = policy.act_batch([obs], [reward])
         poses.append(e.privileged()["base"])
+        if not skills or int(z[0]) != skills[-1]:
+            frames[len(skills)] = render() if render else env.depth_to_uint8(obs["depth"])
         skills.append(int(z[0]))
-        t = len(skills) - 1
-        if t == 0 or skills[-1] != skills[t - 1]:
-            frames[t] = render() if render else env.depth_to_uint8(obs["depth"])
         obs, reward, terminated, truncated, info = e.step(actions[0])
         done = terminated or truncated
     skills = np.array(skills)
@@ -546,11 +511,11 @@ def draw_picture(cfg, method, path):
     policy, (e,) = actor(ref, env_config)
     split = "unseen" if cfg.split == "both" else cfg.split
     tried = 0
-    for ep in eval_episodes(split, cfg.episodes, False, episode_seed=cfg.episode_seed):
-        if ep.difficulty == "easy":
-            continue
+    for ep in (ep for ep in eval_episodes(split, cfg.episodes, False, episode_seed=cfg.episode_seed)
+               if ep.difficulty != "easy"):
         tried += 1
-        success, poses, skills, frames = record_rollout(policy, e, ep, reset_seed(split, ep.index, 0, cfg.episode_seed))
+        seed = reset_seed(split, ep.index, 0, cfg.episode_seed)
+        success, poses, skills, frames = record_rollout(policy, e, ep, seed)
         if success:
             break
     else:
@@ -564,7 +529,8 @@ def draw_picture(cfg, method, path):
     ax.add_patch(Polygon([(0, 0), (layout.room[0], 0), layout.room, (0, layout.room[1])], fill=False, lw=2))
     opened = [r for r, frac in enumerate(e.open_fraction()) if frac > env.OPEN_FRACTION]
     for f in layout.furniture:
-        corners = [env._local_to_world(f, (sx * f.size[0] / 2, sy * f.size[1] / 2)) for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))]
+        corners = [env._local_to_world(f, (sx * f.size[0] / 2, sy * f.size[1] / 2))
+                   for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1))]
         held = [env.RECEPTACLES[r].replace("_", " ") for r in opened
                 if (env.RECEPTACLES[r] == "fridge") == (f.kind == "fridge") and f.kind in ("cabinet", "fridge")]
         ax.add_patch(Polygon(corners, color="tab:red" if held else "0.75", alpha=0.5))
@@ -579,17 +545,16 @@ def draw_picture(cfg, method, path):
         ax.plot([], [], color=SKILL_COLORS[z], lw=3, label=name)
     ax.set(xlim=(-0.2, layout.room[0] + 0.2), ylim=(-0.2, layout.room[1] + 0.2), aspect="equal", xticks=[], yticks=[])
     ax.legend(loc="upper left", bbox_to_anchor=(0, -0.01), ncol=4, fontsize=8, frameon=False)
-    ax.set_title(f"{method['name']}: {split} episode {ep.index} ({ep.kind.replace('_', ' ')}), solved in {len(skills)} steps",
-                 fontsize=10)
+    ax.set_title(f"{method['name']}: {split} episode {ep.index} ({ep.kind.replace('_', ' ')}), "
+                 f"solved in {len(skills)} steps", fontsize=10)
     for i, (t, z, frame) in enumerate(frames):
         fa = fig.add_subplot(grid[i // 3, 2 + i % 3])
         fa.imshow(frame, cmap="gray")
         fa.set(xticks=[], yticks=[])
         fa.set_title(f"step {t}: {env.SKILLS[z]}", fontsize=9, color=SKILL_COLORS[z])
     fig.tight_layout()
-    tmp = path + ".tmp"
-    fig.savefig(tmp, format="png", dpi=100)
-    os.replace(tmp, path)
+    fig.savefig(path + ".tmp", format="png", dpi=100)
+    os.replace(path + ".tmp", path)
     plt.close(fig)
     print(f"wrote {path}: {split} episode {ep.index}, the first solved of {tried} hard or very hard tried"
           + ("" if frames[0][2].ndim == 3 else "; head depth frames (RGB needs OpenGL: MUJOCO_GL=egl)"), flush=True)
@@ -659,26 +624,24 @@ def evaluate(cfg):
     methods = [parse_method(spec, cfg) for spec in cfg.policy]
     conditions = CONDITIONS if cfg.perturb else CONDITIONS[:1]
     episodes = {s: eval_episodes(s, cfg.episodes, cfg.perturb, cfg.difficulty, cfg.episode_seed) for s in splits}
-    # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list, run by any worker.
-    chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
-    jobs = [({"method": i, "member": ref, "seed": seed, "split": s, "condition": c},
-             ref, dict(env_config, perturb=c == "perturb", **({"perturb_after": cfg.perturb_after} if cfg.perturb_after else {})), chunk,
-             [reset_seed(s, ep.index, seed, cfg.episode_seed) for ep in chunk])
-            for i, m in enumerate(methods) for ref, env_config in m["members"] for seed in range(cfg.seeds)
-            for s in splits for c in conditions for chunk in chunks[s]]
-    # Each finished rollout is appended to --out's .jsonl as it comes; --resume keeps those and
-    # runs the rest. A rollout depends on its episode, seed and policy alone (model.Policy runs the
-    # network at a fixed batch), so a resumed evaluation gives the uninterrupted one's results.
-    log_path = os.path.splitext(cfg.out)[0] + ".jsonl"
-    identity = {k: v for k, v in dataclasses.asdict(cfg).items() if k in IDENTITY}
+    # Rollouts already in --out's .jsonl are kept with --resume: a rollout depends on its episode, seed and
+    # policy alone (model.Policy runs the network at a fixed batch), so resuming gives the same results.
+    log_path, settings = os.path.splitext(cfg.out)[0] + ".jsonl", asdict(cfg)
+    identity = {k: v for k, v in settings.items() if k in IDENTITY}
     rollouts = read_rollout_log(log_path, identity) if cfg.resume else []
     finished = {rollout_key(r) for r in rollouts}
-    todo = []
-    for tags, ref, env_config, chunk, seeds in jobs:
-        left = [(ep, seed) for ep, seed in zip(chunk, seeds) if rollout_key(dict(tags, index=ep.index)) not in finished]
-        if left:
-            todo.append((tags, ref, env_config, [ep for ep, _ in left], [seed for _, seed in left]))
-    jobs = todo
+    # A job is a lock-step batch of cfg.batch consecutive episodes of the fixed list, less those finished.
+    chunks = {s: [episodes[s][k:k + cfg.batch] for k in range(0, len(episodes[s]), cfg.batch)] for s in splits}
+    after = {"perturb_after": cfg.perturb_after} if cfg.perturb_after else {}
+    jobs = []
+    for i, m in enumerate(methods):
+        for (ref, env_config), seed, s, c in product(m["members"], range(cfg.seeds), splits, conditions):
+            tags = {"method": i, "member": ref, "seed": seed, "split": s, "condition": c}
+            for chunk in chunks[s]:
+                left = [ep for ep in chunk if rollout_key(dict(tags, index=ep.index)) not in finished]
+                if left:
+                    jobs.append((tags, ref, dict(env_config, perturb=c == "perturb", **after), left,
+                                 [reset_seed(s, ep.index, seed, cfg.episode_seed) for ep in left]))
     n_total = len(rollouts) + sum(len(job[3]) for job in jobs)
     print(f"evaluating {len(methods)} methods on {', '.join(splits)}: {n_total} rollouts in batches of "
           f"{cfg.batch}, {cfg.workers} workers" + (f"; {len(rollouts)} already in {log_path}" if rollouts else ""),
@@ -698,20 +661,19 @@ def evaluate(cfg):
                 rollouts += batch
                 now = time.time()
                 if now - last_log >= cfg.log_every or len(rollouts) == n_total:
-                    last_log, minutes = now, (now - t0) / 60
-                    rate = (len(rollouts) - n_before) / minutes
+                    last_log, rate = now, (len(rollouts) - n_before) / ((now - t0) / 60)
                     print(f"[{len(rollouts):5d}/{n_total}] {rate:6.1f} ep/min, "
                           f"eta {(n_total - len(rollouts)) / rate:.1f} min", flush=True)
     finally:
         if pool:
             pool.terminate() if len(rollouts) < n_total else pool.close()
             pool.join()
-    rollouts.sort(key=lambda r: (r["method"], r["member"], r["seed"], r["split"], r["condition"], r["index"]))
+    rollouts.sort(key=rollout_key)
     for i, m in enumerate(methods):
         mine = [r for r in rollouts if r["method"] == i]
         m["results"] = {s: {c: aggregate(m, [r for r in mine if (r["split"], r["condition"]) == (s, c)])
                             for c in conditions} for s in splits}
-    config = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "resume"}   # a resumed run: the same file
+    config = {k: v for k, v in settings.items() if k != "resume"}   # a resumed run: the same file
     results = {"config": config, "eval_seed": cfg.episode_seed, "splits": splits,
                "versions": {"python": platform.python_version(), "numpy": np.__version__,
                             "mujoco": mujoco.__version__, "torch": torch.__version__},

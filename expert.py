@@ -1,22 +1,19 @@
 """Privileged scripted expert: solves the rearrangement task and labels every step with its skill.
 
-The paper's demonstrations come from M3 (Oracle): closed-loop RL skills that act on the current
-observation, sequenced by a planner that reads the simulator and re-plans (Appendix C.1). Ours
-are scripted state-feedback controllers on the privileged state, and the expert is a function of
-the current state alone: every step it (1) chooses the skill from the world as it is now (is the
-target held, is the receptacle holding the target or the goal closed, where are the robot and the
-arm) and (2) computes that skill's action by feedback. No timers, counters, waypoint indices or
-targets captured at an earlier step: restoring a simulator state into a fresh env and a fresh
-expert gives the same action and skill. So it recovers from whatever the state shows (a drawer
-pushed shut is opened again, a dropped object is picked again, a place that missed is retried) and
-it can label any state a learner reaches (DAgger: `collect.py --policy CKPT`).
+The paper's demonstrations come from M3 (Oracle): closed-loop RL skills on the current observation, sequenced
+by a planner that reads the simulator and re-plans (Appendix C.1). Ours are scripted state-feedback controllers
+on the privileged state, and the expert is a function of the current state alone: every step it (1) chooses the
+skill from the world as it is now (is the target held, is its or the goal's receptacle closed, where are the
+robot and the arm) and (2) computes that skill's action by feedback. No timers, counters, waypoint indices or
+targets kept from earlier steps: a simulator state restored into a fresh env and expert gives the same action
+and skill. So it recovers from whatever the state shows (a drawer pushed shut is opened again, a dropped object
+picked again, a missed place retried) and can label any state a learner reaches (DAgger: `collect.py --policy CKPT`).
 
-Navigation follows a distance field to its goal on the layout's occupancy grid (a cache that
-depends only on the layout, the goal and which receptacles stand open); pick, place and opening
-move the arm toward a damped-least-squares IK solution found from the measured joints every step.
-With plan="fixed" it is the M3 baseline: navigate, pick, navigate, place, never opening anything;
-plan="tpsrl" is that plan with the base held still while the arm works (TP-SRL, Szot et al. 2021,
-whose manipulation skills do not move the base; ours nudge it to keep facing the point).
+Navigation follows a distance field on the layout's occupancy grid (cached per layout, goal and open receptacles);
+pick, place and opening move the arm toward a damped-least-squares IK solution found from the measured joints
+every step. plan="fixed" is the M3 baseline: navigate, pick, navigate, place, never opening anything;
+plan="tpsrl" is that plan with the base still while the arm works (TP-SRL, Szot et al. 2021, whose manipulation
+skills do not move the base; ours nudge it to keep facing the point).
 
     python expert.py --episodes 40 --split unseen               # success by difficulty
     python expert.py --episodes 40 --split unseen --plan fixed
@@ -47,17 +44,14 @@ STANDOFF = {"surface": 0.45, "drawer": 0.72, "fridge": 0.45}   # base centre to 
 REACH = {"surface": 0.6, "drawer": 0.58, "fridge": 0.6}       # base centre to the object or goal, m
 WORK_YAW, WORK_DIST = 0.2, 0.1      # rad, m: a pick or place starts this near facing its point at reach
 OPEN_XY, OPEN_YAW = 0.08, 0.08      # m, rad: an opening starts this near its pose
-NEED_OPEN = 0.75            # a receptacle opened less than this fraction must be opened (the expert
-                            # opens drawers to DRAWER_DONE and the door to DOOR_DONE)
-CARRY_OPEN = 0.4            # ... but with the target in the cup only below this (it must be put down
-                            # to open it, so a door nudged a little shut is placed through)
+NEED_OPEN = 0.75            # a receptacle opened less than this fraction must be opened (to DRAWER_DONE, DOOR_DONE)
+CARRY_OPEN = 0.4            # ... with the target in the cup, below this (a door nudged a bit shut is placed through)
 DRAWER_DONE = 0.97          # fraction at which the drawer pull lets go
 DOOR_DONE = 1.5             # rad at which the door swing lets go (range 1.75; the arm's reach ends ~1.58)
 DOOR_TARGET = 1.6           # rad the swing's aim never passes
 DOOR_STEP = 0.3             # rad: each step the swing aims this far ahead of the door's angle
 ARM_EASE = 3                # steps: the arm closes 1/ARM_EASE of its error per step near its target
-REST_TOL = 0.2              # rad: the arm counts as folded this near ARM_REST (a held object stops
-                            # the fold 0.12-0.14 rad short)
+REST_TOL = 0.2              # rad: the arm is folded this near ARM_REST (a held object stops it 0.12-0.14 short)
 FUNNEL_HEIGHT = 0.15        # m: pick and place approach their point from this high above it
 FUNNEL_HEIGHT_FRIDGE = 0.08 # ... in the fridge, whose upper shelf leaves the wrist little room
 FUNNEL_SLOPE = 2.0          # the aim is this many times the horizontal error above the point
@@ -76,8 +70,7 @@ SETTLE_FACING = 0.3         # rad: the base closes the distance only when it fac
 HOLD_TURN, HOLD_SPEED = 0.5, 0.3       # action limits while the arm works a handle from a pose
 NAV_TURN_GAIN = 4.0         # navigation: turn per rad of error toward the look-ahead point
 NAV_FACING = 0.5            # rad: it drives forward only when it faces the look-ahead point this well
-NAV_SPEED_GAIN = 2.0        # m/s per m to the goal, between NAV_MIN_SPEED and full speed
-NAV_MIN_SPEED = 0.1
+NAV_SPEED_GAIN, NAV_MIN_SPEED = 2.0, 0.1   # m/s per m to the goal, between NAV_MIN_SPEED and full speed
 BACK_OFF = 0.3              # m/s: away from a contact, pulling a drawer, or off the fridge door
 FOLD_ROOM = 1.15            # m: the base backs off to this far from the fridge's face before the fold
 DOWN = np.array([0.0, 0.0, -1.0])
@@ -114,9 +107,8 @@ class Expert:
         self.env, self.plan = env_, plan
         self.noise, self.nav_noise = float(noise), float(nav_noise)
         self.rng = np.random.default_rng(seed)   # the DART noise's, never the label's
-        self.compute_time = 0.0
         self.fields = {}                         # (layout, goal cell, open receptacles) -> distance field
-        self.drift, self.skill = 0.0, SKILL_IDS["navigate"]
+        self.drift, self.skill, self.compute_time = 0.0, SKILL_IDS["navigate"], 0.0
 
     def reset(self):
         """Start of an episode: only the noise process restarts; the labels have no memory."""
@@ -135,17 +127,15 @@ class Expert:
 
     def observe(self):
         """Read the simulator's privileged state: what every decision and geometry test below uses."""
-        e = self.env
-        self.p, self.m, self.ids = e.privileged(), e.model, e.ids
+        self.p, self.m, self.ids = self.env.privileged(), self.env.model, self.env.ids
         self.fur = {f.name: f for f in self.p["layout"].furniture}
 
     def noisy(self, action):
         """DART (Laskey et al. 2017): the env executes a perturbed action, the demo records the clean one.
 
-        Per-step noise on the arm, and while navigating on the base plus a drift of the turn rate:
-        noise that changes every 1/30 s averages out within centimetres, a drift carries the base
-        tens of centimetres off its path, as a learned navigation strays, and the demo shows the way
-        back. The base is not noised during manipulation, whose base label holds it on its mark."""
+        Per-step noise on the arm, and while navigating on the base plus a drift of the turn rate: noise that
+        changes every 1/30 s averages out within centimetres, a drift carries the base tens of centimetres off its
+        path as a learned navigation strays, and the demo shows the way back. Manipulation's base is not noised."""
         if self.noise <= 0 and self.nav_noise <= 0:
             return action
         a = np.array(action, np.float32)
@@ -163,54 +153,40 @@ class Expert:
 
     def _decide(self):
         """-> (skill name, action). Each branch reads only the current privileged state."""
-        p, ep = self.p, self.p["episode"]
-        k = p["target"]
+        p, ep, k = self.p, self.p["episode"], self.p["target"]
+        shut = p["open_fraction"] < NEED_OPEN                   # receptacles that must be opened
         if p["handle"] >= 0:                                     # holding a handle: open it, then let go
             return self.open_skill(p["handle"]), self._operate_handle(p["handle"])
         if p["held"] >= 0 and p["held"] != k:                    # a distractor in the cup: put it down
             return "place", self._hold(grip=-1.0)
-        goal_closed = self.plan == "oracle" and ep.goal_receptacle and self._closed(ep.goal_receptacle - 1)
+        goal_closed = self.plan == "oracle" and ep.goal_receptacle and shut[ep.goal_receptacle - 1]
         if p["held"] == k:
             # the goal's receptacle shut: it cannot be opened with the object in the cup, so put it
             # down, open, pick again (collect.py's events never shut it while the target is carried)
             if goal_closed and p["open_fraction"][ep.goal_receptacle - 1] < CARRY_OPEN:
                 return "place", self._hold(grip=-1.0)
-            goal, place = np.asarray(p["goal"]), ep.goal_place
-            if self.at_work(goal, place):
-                return "place", self._place_step(goal, place)
-            if not self.folded():
-                return "pick", self._stow()
-            return "navigate", self._navigate(self._work_pose(place, goal), face=(goal, self._reach(place)))
-        obj = p["objects"][k]
-        v = self.ids["obj_v"][k]
-        moving = np.linalg.norm(self.env.data.qvel[v:v + 3]) > 0.05
-        if moving:                                                # released or dropped: let it land
-            return ("place" if np.linalg.norm(obj - p["goal"]) < 0.3 else "pick"), self._hold()
-        if np.linalg.norm(obj - p["goal"]) < DONE_DIST:          # placed: clear the arm
-            return "place", self._stow()
-        r = p["obj_receptacle"] - 1
-        if goal_closed:
-            sub = ep.goal_receptacle - 1
-        elif self.plan == "oracle" and r >= 0 and self._closed(r):
-            sub = r
+            point, place, skill, fold_skill = np.asarray(p["goal"]), ep.goal_place, "place", "pick"
         else:
-            sub = None
-        if sub is not None:                                       # open a receptacle
-            pose = self.p["poses"]["fridge_door" if env.RECEPTACLES[sub] == "fridge" else "cabinet"]
-            if self.at_pose(pose):
-                return self.open_skill(sub), self._grab_handle(sub)
-            if not self.folded():
-                return self._stow_skill(), self._stow()
-            return "navigate", self._navigate(pose)
-        place = self.support(obj)
-        if self.at_work(obj, place):
-            return "pick", self._pick_step(obj, place)
+            obj, r = p["objects"][k], p["obj_receptacle"] - 1
+            v = self.ids["obj_v"][k]
+            if np.linalg.norm(self.env.data.qvel[v:v + 3]) > 0.05:    # released or dropped: let it land
+                return ("place" if np.linalg.norm(obj - p["goal"]) < 0.3 else "pick"), self._hold()
+            if np.linalg.norm(obj - p["goal"]) < DONE_DIST:           # placed: clear the arm
+                return "place", self._stow()
+            if goal_closed or (self.plan == "oracle" and r >= 0 and shut[r]):   # open a receptacle
+                sub = ep.goal_receptacle - 1 if goal_closed else r
+                pose = p["poses"]["fridge_door" if env.RECEPTACLES[sub] == "fridge" else "cabinet"]
+                if self.at_pose(pose):
+                    return self.open_skill(sub), self._grab_handle(sub)
+                if not self.folded():
+                    return self._stow_skill(), self._stow()
+                return "navigate", self._navigate(pose)
+            point, place, skill, fold_skill = obj, self.support(obj), "pick", self._stow_skill()
+        if self.at_work(point, place):
+            return skill, self._place_step(point, place) if skill == "place" else self._pick_step(point, place)
         if not self.folded():
-            return self._stow_skill(), self._stow()
-        return "navigate", self._navigate(self._work_pose(place, obj), face=(obj, self._reach(place)))
-
-    def _closed(self, r):
-        return self.p["open_fraction"][r] < NEED_OPEN
+            return fold_skill, self._stow()
+        return "navigate", self._navigate(self._work_pose(place, point), face=(point, self._reach(place)))
 
     # Public: collect.py's events and evaluate.py's BC-Modular planner ask these of the state too.
 
@@ -226,8 +202,7 @@ class Expert:
         return self.open_skill(near[0]) if near else "pick"
 
     def folded(self):
-        """The arm's set-point (observed as joint_target) is folded: an arm that a contact holds off
-        its set-point counts as folded, else the label would wait on the contact."""
+        """The arm's set-point (observed as joint_target) is folded (so an arm a contact holds off it counts)."""
         return np.abs(self.p["arm_target"] - env.ARM_REST).max() < REST_TOL
 
     # --- geometry ---
@@ -252,31 +227,26 @@ class Expert:
                 return f.name
         return "floor"
 
-    def _furniture(self, place):
-        return self.fur["cabinet" if place.startswith("drawer") else place]
-
     def _kind(self, place):
-        return "drawer" if place.startswith("drawer") else "surface" if place == "floor" else self._furniture(place).kind
+        return "drawer" if place.startswith("drawer") else "surface" if place == "floor" else self.fur[place].kind
 
     def _reach(self, place):
         return REACH[self._kind(place)]
 
     def _work_pose(self, place, point):
         """Base pose facing the point at arm's reach, in line with it from STANDOFF before the face."""
-        if place == "floor":                                     # no furniture: come at it from here
-            xy = np.asarray(self.p["base"][:2])
-            u = (point[:2] - xy) / max(np.linalg.norm(point[:2] - xy), 1e-6)
-            return (*(point[:2] - u * REACH["surface"]), np.arctan2(u[1], u[0]))
-        f = self._furniture(place)
-        n, lat, face = self._frame(f)
         kind = self._kind(place)
-        offset = float(np.clip((np.asarray(point[:2]) - face) @ lat, -f.size[1] / 2 + 0.1, f.size[1] / 2 - 0.1))
-        if kind == "fridge":                     # keep clear of the open door on the hinge side
-            offset = 0.12
-        w = face + lat * offset + n * STANDOFF[kind]
-        u = (point[:2] - w) / np.linalg.norm(point[:2] - w)
-        xy = point[:2] - u * REACH[kind]          # on the line from the work pose to the point, at reach
-        return (*xy, np.arctan2(u[1], u[0]))
+        if place == "floor":                                     # no furniture: come at it from here
+            w = np.asarray(self.p["base"][:2])
+        else:
+            f = self.fur["cabinet" if kind == "drawer" else place]
+            n, lat, face = self._frame(f)
+            offset = float(np.clip((np.asarray(point[:2]) - face) @ lat, -f.size[1] / 2 + 0.1, f.size[1] / 2 - 0.1))
+            if kind == "fridge":                     # keep clear of the open door on the hinge side
+                offset = 0.12
+            w = face + lat * offset + n * STANDOFF[kind]
+        u = (point[:2] - w) / max(np.linalg.norm(point[:2] - w), 1e-6)
+        return (*(point[:2] - u * REACH[kind]), np.arctan2(u[1], u[0]))   # on the line from w, at reach
 
     def at_work(self, point, place):
         """Facing the point at arm's reach: where a pick or place acts (its base label keeps it there)."""
@@ -293,10 +263,9 @@ class Expert:
     # --- arm ---
 
     def _arm_action(self, q_des, base=(0.0, 0.0), grip=0.0):
-        """Joint-delta action that moves the arm's set-point toward q_des: at the env's max rate while
-        far, then 1/ARM_EASE of the error per step, so that the label is a smooth function of the
-        observed joint_target (a max-rate label flips sign within one arm_delta, which a learned arm
-        smooths over and overshoots)."""
+        """Joint-delta action moving the arm's set-point toward q_des: at the env's max rate while far, then
+        1/ARM_EASE of the error per step, so the label is a smooth function of the observed joint_target (a
+        max-rate label flips sign within one arm_delta, which a learned arm smooths over and overshoots)."""
         delta = (q_des - self.p["arm_target"]) / (ARM_EASE * self.env.config.arm_delta)
         return np.array([*np.clip(delta, -1, 1), *base, grip])
 
@@ -306,15 +275,13 @@ class Expert:
     def _ik(self, target, axis=None, iters=30):
         """Damped least squares on ee_site position (+ cup axis, the ee x-axis), from the measured
         joints (the arm is redundant: a solution tracked from an earlier step would be hidden state)."""
-        m, ids = self.m, self.ids
-        d = self.env.data
-        if not hasattr(self, "d_ik") or self.d_ik_model is not m:
+        m, ids, site = self.m, self.ids, self.ids["ee_site"]
+        if getattr(self, "d_ik_model", None) is not m:
             self.d_ik, self.d_ik_model = mujoco.MjData(m), m     # scratch data, rebuilt per layout model
         di = self.d_ik
-        di.qpos[:] = d.qpos
+        di.qpos[:] = self.env.data.qpos
         q = np.array(self.p["arm"], float)
         jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
-        site = ids["ee_site"]
         lo, hi = env.ARM_RANGE[:, 0] + 0.05, env.ARM_RANGE[:, 1] - 0.05
         damp = 1e-3 * np.eye(3 if axis is None else 6)
         for _ in range(iters):
@@ -323,13 +290,10 @@ class Expert:
             mujoco.mj_comPos(m, di)              # the Jacobian needs comPos, not kinematics alone
             err = target - di.site_xpos[site]
             mujoco.mj_jacSite(m, di, jacp, jacr, site)
-            if axis is not None:
-                c = di.site_xmat[site].reshape(3, 3)[:, 0]
-                tilt = [c[1] * axis[2] - c[2] * axis[1], c[2] * axis[0] - c[0] * axis[2], c[0] * axis[1] - c[1] * axis[0]]
-                err = np.concatenate([err, 0.3 * np.asarray(tilt)])     # cup axis x target axis
-                J = np.vstack([jacp[:, ids["arm_v"]], 0.3 * jacr[:, ids["arm_v"]]])
-            else:
-                J = jacp[:, ids["arm_v"]]
+            J = jacp[:, ids["arm_v"]]
+            if axis is not None:                 # + 0.3 x (cup axis x target axis)
+                err = np.concatenate([err, 0.3 * np.cross(di.site_xmat[site].reshape(3, 3)[:, 0], axis)])
+                J = np.vstack([J, 0.3 * jacr[:, ids["arm_v"]]])
             if err[:3] @ err[:3] < 4e-6 and err[3:] @ err[3:] < 4e-4:
                 break
             dq = J.T @ np.linalg.solve(J @ J.T + damp, err)
@@ -337,37 +301,29 @@ class Expert:
         return q
 
     def _clearance(self, body, half=env.OBJ_HALF):
-        """Air under a body (m): a ray straight down from `half` below its centre, missing the robot
-        and the body itself."""
+        """Air under a body (m): a ray straight down from `half` below its centre, missing the robot and body."""
         start = self.env.data.xpos[body] - [0, 0, half + 0.002]
         gid = np.zeros(1, np.int32)      # env's depth camera's geom groups: the robot left out
         dist = mujoco.mj_ray(self.m, self.env.data, start, DOWN, self.env._geomgroup, 1, int(body), gid)
         return np.inf if dist < 0 else dist
 
     def _stow(self):
-        """Fold the arm by the way out that the cup's position calls for: lift a held object off its
-        support, leave a drawer handle straight back, go round the free edge of the open fridge door,
-        pull the cup out of a piece of furniture, then fold in joint space. Where the way out is out
-        of the arm's reach (its IK solution is where the arm already is), fold in joint space."""
-        p = self.p
-        ee = p["ee"]
-        k = p["target"]
-        x, y, _ = p["base"]
-        inward = np.array([*(np.array([x, y]) - ee[:2]), 0.0])
-        inward *= 0.15 / max(np.linalg.norm(inward), 1e-6)
-        aim = None
+        """Fold the arm by the way out the cup's position calls for: lift a held object off its support, leave
+        a drawer handle straight back, go round the open fridge door's free edge, pull the cup out of furniture,
+        then (or where the way out is out of reach: IK stays where the arm is) fold in joint space."""
+        p, ee, aim = self.p, self.p["ee"], None
         # up and toward the base (straight up is out of reach for an arm stretched over a counter),
         # the cup's orientation free: the weld carries the object whatever it is
-        if p["held"] == k and self._clearance(self.ids["obj_body"][k]) < LIFT:
-            aim = ee + [0, 0, 0.05] + inward
+        if p["held"] == p["target"] and self._clearance(self.ids["obj_body"][p["target"]]) < LIFT:
+            inward = np.array([*(np.asarray(p["base"][:2]) - ee[:2]), 0.0])
+            aim = ee + [0, 0, 0.05] + inward * (0.15 / max(np.linalg.norm(inward), 1e-6))
         elif p["held"] < 0:
-            n = self._frame(self.fur["cabinet"])[0]
             near = [r for r in range(2) if np.linalg.norm(ee - p["handles"][r]) < 0.08]
             below = self._clearance(self.ids["ee_body"], 0.0)
             if below < 0.1 and below < ee[2] - 0.05:             # low over a surface or an object:
                 aim = ee + [0, 0, 0.12]                          # up first, the fold would sweep it
             elif near:                                           # off a drawer handle, straight back
-                aim = p["handles"][near[0]] + [*n * 0.14, 0.0]
+                aim = p["handles"][near[0]] + [*self._frame(self.fur["cabinet"])[0] * 0.14, 0.0]
             else:
                 aim = self._door_way_out()
                 if isinstance(aim, tuple):                       # the base backs off instead
@@ -385,24 +341,21 @@ class Expert:
         return self._arm_action(env.ARM_REST)
 
     def _door_way_out(self):
-        """The way back from the fridge door's handle, by where the cup is in the door's frame: s along
-        the panel from the hinge, h off its outer face. The handle is on the outer face, which the
-        open door turns away from the robot: away from the panel, past its free edge, round to the
-        robot's side, then back the base off so the arm has room to fold. -> an aim for the cup, a
-        base action (v, w), or None (not near the door)."""
+        """The way back from the fridge door's handle, by where the cup is in the door's frame: s along the
+        panel from the hinge, h off its outer face (which has the handle and which the open door turns away
+        from the robot): away from the panel, past its free edge, round to the robot's side, then back the base
+        off so the arm has room to fold. -> an aim for the cup, a base action (v, w), or None (not near)."""
         p = self.p
-        r = env.RECEPTACLES.index("fridge")
-        if p["open_fraction"][r] < 0.3:
+        frac = p["open_fraction"][env.RECEPTACLES.index("fridge")]
+        if frac < 0.3:
             return None
         f = self.fur["fridge"]
         n, lat, face = self._frame(f)
-        th = p["open_fraction"][r] * env.DOOR_RANGE
-        hinge = face + n * env.DOOR_HALF - lat * f.size[1] / 2
+        th, width, ee = frac * env.DOOR_RANGE, f.size[1], p["ee"]
+        hinge = face + n * env.DOOR_HALF - lat * width / 2
         along = n * np.sin(th) + lat * np.cos(th)                # the panel, hinge to free edge
         out = n * np.cos(th) - lat * np.sin(th)                  # the panel's outer normal
-        ee = p["ee"]
         s, h = (ee[:2] - hinge) @ along, (ee[:2] - hinge) @ out
-        width = f.size[1]
         if not (-0.1 < s < width + 0.4 and -0.35 < h < 0.3):
             return None
         at = lambda s_, h_: np.array([*(hinge + along * s_ + out * h_), ee[2]])
@@ -410,16 +363,14 @@ class Expert:
             return at(s, 0.1) if h < 0.06 else at(width + 0.2, h)
         if h > -0.2:
             return at(width + 0.2, -0.25)
-        x, y, _ = p["base"]
-        if (np.array([x, y]) - face) @ n < FOLD_ROOM:            # room to fold: back the base off
+        if (np.asarray(p["base"][:2]) - face) @ n < FOLD_ROOM:   # room to fold: back the base off
             return (-BACK_OFF / self.env.config.lin_speed, 0.0)
         return None
 
     # --- pick and place: a closed-loop reach from above ---
 
     def _face(self, point, reach):
-        """Base label (v, w) that turns to face the point and settles at `reach` from it: the end of a
-        navigation, and what holds a pick or place on its mark."""
+        """Base label (v, w) facing the point at `reach` from it (a navigation's end; a pick's or place's hold)."""
         x, y, yaw = self.p["base"]
         cfg = self.env.config
         to = np.asarray(point[:2]) - [x, y]
@@ -429,47 +380,40 @@ class Expert:
         v = 0.0 if abs(err) > SETTLE_FACING else np.clip(ALONG_GAIN * along, -SETTLE_SPEED, SETTLE_SPEED) / cfg.lin_speed
         return v, w
 
-    def _base_hold(self, point, place):
-        """Base label of a pick or place: keep facing the point at reach."""
-        return self._face(point, self._reach(place))
-
     def _reach_step(self, place, pt, grip, zone, base):
         """One step of the reach toward pt: every step aims FUNNEL_SLOPE x the horizontal error (at most
-        FUNNEL_HEIGHT) above the point and moves the arm toward the IK solution of that aim found from
-        the measured joints; within `zone` of the point the grip command is `grip`."""
+        FUNNEL_HEIGHT) above the point and moves the arm toward the IK solution of that aim found from the
+        measured joints; within `zone` of the point the grip command is `grip`."""
         ee = self.p["ee"]
         err = pt - ee
         e_xy = np.linalg.norm(err[:2])
         height = FUNNEL_HEIGHT_FRIDGE if place == "fridge" else FUNNEL_HEIGHT
         aim = pt + [0, 0, min(height, FUNNEL_SLOPE * e_xy)]
-        # reaching out from rest would sweep the forearm (and a held object) through the edge of a
-        # counter higher than the folded cup, or a held object through a drawer's front: first
-        # raise the cup in place
+        # reaching out from rest would sweep the forearm (and a held object) through the edge of a counter
+        # higher than the folded cup, or a held object through a drawer's front: first raise the cup in place
         if place != "fridge" and e_xy > 0.15 and ee[2] < pt[2] + height - 0.03:
             aim = np.array([*ee[:2], pt[2] + height])
-        # the release waits until the object is over its point: released farther out it can land
-        # on the front edge of a shelf and fall off
+        # release only over the point: released farther out, the object can land on a shelf's front edge and fall off
         grip = grip if np.linalg.norm(err) < zone and (grip > 0 or e_xy < 0.03) else 0.0
         return self._arm_action(self._ik(aim, DOWN), base, grip)
 
     def _pick_step(self, obj, place):
-        """Reach for a point 0.5 cm above the object's top, the suction on for the last GRASP_ZONE: the
-        suction takes an object up to 3 cm away (env.GRASP_DIST), so a reach that stops short still
-        grasps, and the grip label is a function of the observed distance."""
+        """Reach 0.5 cm above the object's top, the suction on for the last GRASP_ZONE: it takes an object up to
+        3 cm away (env.GRASP_DIST), so a short reach still grasps; the grip label depends on observed distance."""
         pt = obj + [0, 0, env.OBJ_HALF + 0.005]
-        return self._reach_step(place, pt, 1.0, GRASP_ZONE, self._base_hold(obj, place))
+        return self._reach_step(place, pt, 1.0, GRASP_ZONE, self._face(obj, self._reach(place)))
 
     def _place_step(self, goal, place):
-        """Reach for the drop point (the held object 4 cm above the goal), releasing within RELEASE_ZONE
-        of it once over it, or wherever the object already hangs low over the goal (an arm that
-        cannot reach the drop point exactly still lets go within the success distance)."""
+        """Reach for the drop point (the held object 4 cm above the goal), releasing within RELEASE_ZONE of it
+        once over it, or wherever the object hangs low over the goal (an arm that cannot reach the drop point
+        exactly still lets go within the success distance)."""
         p = self.p
         obj = p["objects"][p["target"]]
         drop = goal + p["ee"] - obj + [0, 0, 0.04]
         over = np.linalg.norm(obj[:2] - goal[:2]) < DROP_XY and -0.02 < obj[2] - goal[2] < 0.1
         if np.linalg.norm(drop - p["ee"]) < PLACE_TOL or over:
             return self._hold(grip=-1.0)
-        return self._reach_step(place, drop, -1.0, RELEASE_ZONE, self._base_hold(goal, place))
+        return self._reach_step(place, drop, -1.0, RELEASE_ZONE, self._face(goal, self._reach(place)))
 
     # --- opening: take the handle, pull the drawer or swing the door, let go ---
 
@@ -477,29 +421,21 @@ class Expert:
         """Approach the handle along the furniture's normal, the cup pointing in: the aim stays in front
         of the handle by FUNNEL_SLOPE x the cup's off-axis error (at most 0.3 m), then 1 cm past its axis
         with the suction on for the last 6 cm, so a reach that falls a few cm short still takes it."""
-        p = self.p
-        f = self.fur["fridge" if env.RECEPTACLES[r] == "fridge" else "cabinet"]
-        n = self._frame(f)[0]
-        out = np.array([*n, 0.0])
-        handle = p["handles"][r]
-        e = p["ee"] - handle
-        off_axis = np.linalg.norm(e - (e @ out) * out)
-        aim = handle + out * min(0.3, max(FUNNEL_SLOPE * off_axis, -0.01))
-        grip = 1.0 if np.linalg.norm(e) < 0.06 else 0.0
-        pose = p["poses"]["fridge_door" if env.RECEPTACLES[r] == "fridge" else "cabinet"]
-        return self._arm_action(self._ik(aim, -out), self._pose_hold(pose), grip=grip)
+        p, fridge = self.p, env.RECEPTACLES[r] == "fridge"
+        out = np.array([*self._frame(self.fur["fridge" if fridge else "cabinet"])[0], 0.0])
+        e = p["ee"] - p["handles"][r]
+        aim = p["handles"][r] + out * min(0.3, max(FUNNEL_SLOPE * np.linalg.norm(e - (e @ out) * out), -0.01))
+        base = self._pose_hold(p["poses"]["fridge_door" if fridge else "cabinet"])
+        return self._arm_action(self._ik(aim, -out), base, grip=1.0 if np.linalg.norm(e) < 0.06 else 0.0)
 
     def _operate_handle(self, r):
         """Sec. 3: pull the drawer by backing the base away; swing the door by moving the cup along its
         arc about the hinge, DOOR_STEP ahead of where it is now."""
-        p = self.p
-        frac = p["open_fraction"][r]
-        if env.RECEPTACLES[r] != "fridge":
-            if frac >= DRAWER_DONE:
-                return self._hold(grip=-1.0)
-            return self._hold(base=(-BACK_OFF / self.env.config.lin_speed, 0.0))
+        p, frac = self.p, self.p["open_fraction"][r]
         th = frac * env.DOOR_RANGE
-        if th >= DOOR_DONE:
+        if env.RECEPTACLES[r] != "fridge" and frac < DRAWER_DONE:     # pull: back the base away
+            return self._hold(base=(-BACK_OFF / self.env.config.lin_speed, 0.0))
+        if env.RECEPTACLES[r] != "fridge" or th >= DOOR_DONE:          # open: let go
             return self._hold(grip=-1.0)
         f = self.fur["fridge"]
         n, lat, face = self._frame(f)
@@ -507,8 +443,7 @@ class Expert:
         dth = min(DOOR_STEP, DOOR_TARGET + 0.05 - th)
         c, s = np.cos(dth), np.sin(dth)
         rel = p["ee"][:2] - hinge                                # the door turns from lat toward n
-        a, b = rel @ n, rel @ lat
-        rot = np.array([[c, s], [-s, c]]) @ np.array([a, b])     # (n, lat) coordinates after turning dth
+        rot = np.array([[c, s], [-s, c]]) @ np.array([rel @ n, rel @ lat])   # (n, lat) coordinates after dth
         tgt = hinge + n * rot[0] + lat * rot[1]
         # position only: the suction holds the handle by a ball joint, and the redundant arm needs
         # its freedom to follow the arc to its end
@@ -529,18 +464,15 @@ class Expert:
         face=(point, reach) face the point and settle at reach (what a pick or place needs)."""
         p, cfg = self.p, self.env.config
         x, y, yaw = p["base"]
-        pos = np.array([x, y])
-        goal = np.asarray(pose[:2], float)
+        pos, goal = np.array([x, y]), np.asarray(pose[:2], float)
         dist = np.linalg.norm(goal - pos)
         touch = self._contact()
         if touch is not None:                    # pressed against the scene: back off from it
             ahead = (touch[:2] - pos) @ [np.cos(yaw), np.sin(yaw)] > 0
             return self._arm_action(env.ARM_REST, ((-BACK_OFF if ahead else BACK_OFF) / cfg.lin_speed, 0.0))
-        if dist < ARRIVE:
-            if face is None:
-                err = _wrap(pose[2] - yaw)
-                return self._arm_action(env.ARM_REST, (0.0, np.clip(TURN_GAIN * err / cfg.ang_speed, -SETTLE_TURN, SETTLE_TURN)))
-            return self._arm_action(env.ARM_REST, self._face(*face))
+        if dist < ARRIVE:                        # there: turn to its heading, or face the point at reach
+            turn = np.clip(TURN_GAIN * _wrap(pose[2] - yaw) / cfg.ang_speed, -SETTLE_TURN, SETTLE_TURN)
+            return self._arm_action(env.ARM_REST, (0.0, turn) if face is None else self._face(*face))
         aim = self._lookahead(pos, goal)
         err = _wrap(np.arctan2(aim[1] - y, aim[0] - x) - yaw)
         w = np.clip(NAV_TURN_GAIN * err / cfg.ang_speed, -1, 1)
@@ -548,8 +480,7 @@ class Expert:
         return self._arm_action(env.ARM_REST, (v, w))
 
     def _contact(self):
-        """Where the robot presses on the scene with more than CONTACT_FORCE (env's collision measure's
-        contacts) -> a world point, or None."""
+        """A world point where the robot presses on the scene harder than CONTACT_FORCE, or None."""
         force, pos = self.env.robot_contacts()
         if not len(force) or force.max() < CONTACT_FORCE:
             return None
@@ -559,8 +490,7 @@ class Expert:
         """The point LOOKAHEAD cells down the distance field from the base (the goal itself near it)."""
         res = self.p["grid_res"] * FIELD_POOL
         dist, nxt = self._field(goal)
-        shape = np.array(dist.shape)
-        c = tuple(np.clip((pos / res).astype(int), 0, shape - 1))
+        c = tuple(np.clip((pos / res).astype(int), 0, np.array(dist.shape) - 1))
         if not np.isfinite(dist[c]):                 # in an inflated or blocked cell: nearest way out
             i, j = c
             win = dist[max(i - 10, 0):i + 11, max(j - 10, 0):j + 11]
@@ -578,15 +508,12 @@ class Expert:
         return (np.array(c) + 0.5) * res
 
     def _field(self, goal):
-        """Cost-to-go to the goal's cell over the base's free cells (8-connected; cells closer than
-        NAV_CLEAR to an obstacle cost NAV_NEAR_COST, so a path keeps a learner room for error) and,
-        per cell, the flat index of its next cell down (-1 at the goal). Cached: it depends only on the
-        layout, the goal cell and which receptacles stand open."""
+        """Cost-to-go to the goal's cell over the base's free cells (8-connected; cells closer than NAV_CLEAR to
+        an obstacle cost NAV_NEAR_COST, so a path keeps a learner room for error) and, per cell, the flat index
+        of its next cell down (-1 at the goal). Cached: it depends only on layout, goal cell and open receptacles."""
         p = self.p
-        res = p["grid_res"]
-        open_key = tuple(np.round(p["open_fraction"], 1))
-        g = tuple(np.clip((goal / res).astype(int), 0, np.array(p["occupancy"].shape) - 1))   # fine cell
-        key = (p["layout"].id, g, open_key)
+        g = tuple(np.clip((goal / p["grid_res"]).astype(int), 0, np.array(p["occupancy"].shape) - 1))   # fine cell
+        key = (p["layout"].id, g, tuple(np.round(p["open_fraction"], 1)))
         if key not in self.fields:
             if len(self.fields) > 256:
                 self.fields.clear()
@@ -594,8 +521,7 @@ class Expert:
         return self.fields[key]
 
     def _make_field(self, g):
-        free = ~self._blocked(NAV_INFLATE)
-        clear = ~self._blocked(NAV_CLEAR)
+        free, clear = ~self._blocked(NAV_INFLATE), ~self._blocked(NAV_CLEAR)
         i, j = g                                     # the goal may touch the inflation: free a disc
         disc = slice(max(i - 6, 0), i + 7), slice(max(j - 6, 0), j + 7)
         free[disc] |= ~self._blocked(env.ROBOT_RADIUS + 0.05, door_margin=0.0)[disc]
@@ -604,41 +530,32 @@ class Expert:
         pool = lambda a: np.pad(a, ((0, H * FIELD_POOL - a.shape[0]), (0, W * FIELD_POOL - a.shape[1]))).reshape(
             H, FIELD_POOL, W, FIELD_POOL)
         free, clear = pool(free).any((1, 3)), pool(clear).all((1, 3))   # a way through; a wide berth
-        cost = np.where(clear, 1.0, NAV_NEAR_COST)
-        cost[~free] = np.inf
+        cost = np.where(free, np.where(clear, 1.0, NAV_NEAR_COST), np.inf)
         dist = np.full(free.shape, np.inf)
-        g = (g[0] // FIELD_POOL, g[1] // FIELD_POOL)
-        dist[g] = 0.0
-        steps = [(a, b, np.hypot(a, b)) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
+        dist[g[0] // FIELD_POOL, g[1] // FIELD_POOL] = 0.0
+        shift = lambda a, b: (slice(max(a, 0), H + min(a, 0)), slice(max(b, 0), W + min(b, 0)))
+        steps = [(shift(a, b), shift(-a, -b), np.hypot(a, b)) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
         while True:                                  # Bellman-Ford sweeps until nothing improves
             best = dist.copy()
-            for a, b, l in steps:                    # from the neighbour at (i + a, j + b) ...
-                src = dist[max(a, 0):H + min(a, 0), max(b, 0):W + min(b, 0)]
-                dst = (slice(max(-a, 0), H + min(-a, 0)), slice(max(-b, 0), W + min(-b, 0)))
-                np.minimum(best[dst], src + l * cost[dst], out=best[dst])
+            for src, dst, l in steps:                # from the neighbour at (i + a, j + b) ...
+                np.minimum(best[dst], dist[src] + l * cost[dst], out=best[dst])
             if np.array_equal(best, dist):
                 break
             dist = best
-        nxt = np.full(free.shape, -1, np.int64)      # steepest descent, one neighbour per cell
-        low = np.full(free.shape, np.inf)
+        nxt, low = np.full(free.shape, -1, np.int64), np.full(free.shape, np.inf)   # steepest descent
         flat = np.arange(H * W).reshape(H, W)
-        for a, b, l in steps:
-            cand = np.full(free.shape, np.inf)
-            idx = np.full(free.shape, -1, np.int64)
-            src = (slice(max(a, 0), H + min(a, 0)), slice(max(b, 0), W + min(b, 0)))
-            dst = (slice(max(-a, 0), H + min(-a, 0)), slice(max(-b, 0), W + min(-b, 0)))
+        for src, dst, _ in steps:
+            cand, idx = np.full(free.shape, np.inf), np.full(free.shape, -1, np.int64)
             cand[dst], idx[dst] = dist[src], flat[src]
             better = cand < np.minimum(low, dist)
             low[better], nxt[better] = cand[better], idx[better]
         return dist, nxt
 
     def _blocked(self, inflate, door_margin=DOOR_MARGIN):
-        """Occupancy for planning: furniture and pulled drawers inflated by `inflate`, the open
-        fridge door by door_margin more (a thin panel at the height of the folded arm, which sticks
-        out 0.4 m from the base centre)."""
-        p = self.p
+        """Occupancy for planning: furniture and pulled drawers inflated by `inflate`, the open fridge door by
+        door_margin more (a thin panel at the height of the folded arm, which sticks out 0.4 m from the base)."""
+        p, res = self.p, self.p["grid_res"]
         grid = env.occupancy_grid(p["layout"], inflate=inflate)
-        res = p["grid_res"]
         X, Y = np.meshgrid((np.arange(grid.shape[0]) + 0.5) * res, (np.arange(grid.shape[1]) + 0.5) * res, indexing="ij")
         for k, rec in enumerate(env.RECEPTACLES):
             frac = round(p["open_fraction"][k], 1)       # as the cache key
@@ -669,9 +586,7 @@ def run(args):
     e = env.RearrangeEnv(perturb=args.perturb, perturb_after=args.perturb_after)
     x = Expert(e, plan=args.plan, seed=args.seed, noise=args.noise, nav_noise=args.nav_noise)
     eps = env.make_episodes(args.split, args.episodes, seed=args.seed)
-    by_diff = collections.defaultdict(list)
-    failures = collections.Counter()
-    skill_steps = collections.Counter()
+    by_diff, failures, skill_steps = collections.defaultdict(list), collections.Counter(), collections.Counter()
     agree, total_steps, lengths = 0, 0, []
     t0 = time.perf_counter()
     e.timing = dict.fromkeys(e.timing, 0.0)
@@ -680,9 +595,8 @@ def run(args):
         x.reset()
         done = False
         while not done:
-            gt = info["skill_gt"]
             a, skill = x.act(obs)
-            agree += int(skill == gt)
+            agree += int(skill == info["skill_gt"])
             skill_steps[env.SKILLS[skill]] += 1
             obs, r, term, trunc, info = e.step(x.noisy(a))
             done = term or trunc

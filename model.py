@@ -1,18 +1,15 @@
 """Skill Transformer (Huang, Batra, Rai, Szot, ICCV 2023, Sec. 4) and its baselines, in one file.
 
-A shared encoder turns each step's depth image and state into a token x_t. Skill Inference, a
-causal transformer over x_{t-C+1..t}, predicts the active skill (and, in training, which receptacle
-holds the target and how open the target's and the goal's receptacles are). Action Inference, a
-causal transformer over the interleaved tokens (x_t, a_{t-1}, z_t), predicts the arm and base means
-and a 3-way grip distribution. Training feeds the true skills as z (teacher forcing, Sec. 4.2),
-except a skill_sample share of the steps, which get the skill module's own prediction (scheduled
-sampling, Bengio et al. 2015), as a rollout does. With prev_action=False (the default) the a_{t-1}
-tokens are left out (the copycat problem, Wen et al. 2020).
+A shared encoder turns each step's depth image and state into a token x_t. Skill Inference, a causal transformer over
+x_{t-C+1..t}, predicts the active skill (in training also which receptacle holds the target and how open the target's
+and the goal's receptacles are). Action Inference, a causal transformer over the interleaved tokens (x_t, a_{t-1},
+z_t), predicts arm and base means and 3 grip logits. Training feeds the true skills as z (teacher forcing, Sec. 4.2)
+but, at a skill_sample share of the steps, the skill module's own prediction, as a rollout does (scheduled sampling,
+Bengio et al. 2015). prev_action=False (default) leaves out the a_{t-1} tokens (the copycat problem, Wen et al. 2020).
 
-Memory (not in the paper): both transformers also read `memory` older steps, one every
-`memory_stride` steps before the window, as tokens of their state alone (where the robot was, what
-it held). A goal receptacle opened 200 steps before the pick is out of the camera's view and of a
-15-step window; the expert's next choice rests on it (EXPERIMENTS.md R33, R48).
+Memory (not in the paper): both transformers also read `memory` older steps, one every `memory_stride` steps before
+the window, as state-only tokens (where the robot was, what it held): a goal receptacle opened 200 steps before the
+pick is out of view and of a 15-step window, yet the expert's next choice rests on it (EXPERIMENTS.md R33, R48).
 
 Baselines (Sec. 5.2, Sec. 5.5, Appendix C.2), chosen by ModelConfig.variant:
     st        Skill Transformer
@@ -21,8 +18,7 @@ Baselines (Sec. 5.2, Sec. 5.5, Appendix C.2), chosen by ModelConfig.variant:
     dt        Decision Transformer (Chen et al. 2021) over (R_t, x_t, a_{t-1}), R = return-to-go
     dt_skill  dt plus an auxiliary skill head trained with focal loss
 
-This file needs torch and numpy only, so it can be copied into another project; a rollout reads
-its observation layout from the checkpoint.
+Needs torch and numpy only, so it can be copied elsewhere; a rollout reads its observation layout from the checkpoint.
 
     python model.py                                                  # self-check: sizes, a loss
     python -c "import model; p = model.load_policy('pretrained/st.pt')"   # p.act(obs) -> action, skill
@@ -43,16 +39,15 @@ GRIP_VALUES = (-1.0, 0.0, 1.0)                       # release, keep, grasp = gr
 # env.STATE_LAYOUT with obs="paper": the default input layout; train.py passes the data's own.
 PAPER_STATE = (("joint", 7), ("joint_target", 7), ("is_holding", 1), ("ee_rest", 3), ("obj_start", 3),
                ("goal", 3), ("obj_start_polar", 3), ("goal_polar", 3))
-# The reach's targets (cup to object, cup to goal): normalised over whole episodes a centimetre is
-# ~0.008 of a unit, too fine for the reach; ModelConfig.near_scale adds them at 10 cm scale (M9).
+# The reach's targets (cup to object, cup to goal): normalised over whole episodes a centimetre is ~0.008 of a unit,
+# too fine for the reach; ModelConfig.near_scale adds them at 10 cm scale (M9).
 NEAR_FIELDS = ("obj_start", "goal")
 NET_BATCH = 8   # Policy runs the network on this many rows, padded: see Policy
 
 
 @dataclass
 class ModelConfig:
-    """Everything needed to rebuild the network; saved as "model_args" in every checkpoint. The
-    defaults are the recipe's network (README, Results)."""
+    """Everything needed to rebuild the network, saved as "model_args" in each checkpoint; defaults: README, Results."""
     depth_size: int = 32
     """side of the square depth image, in pixels (read from the data)"""
     state_layout: tuple = PAPER_STATE
@@ -86,8 +81,8 @@ class ModelConfig:
     prev_action: bool = False
     """the paper's a_{t-1} tokens in action inference; off: with them the policy copies a_{t-1}"""
     skill_sample: float = 0.5
-    """st/lstm, training only: probability that z_t is the skill module's own (detached) argmax
-    instead of the true skill (scheduled sampling); 0: teacher forcing, as the paper (Sec. 4.2)"""
+    """st/lstm, training only: probability that z_t is the skill module's own (detached) argmax instead of the true
+    skill (scheduled sampling); 0: teacher forcing, as the paper (Sec. 4.2)"""
 
     @property
     def state_dim(self):
@@ -103,9 +98,8 @@ class ModelConfig:
 # --- observation encoders (Sec. 4.1 "Input") ---
 
 class SmallCNN(nn.Module):
-    """A 4x4 stride-4 "patchify" convolution, strided 3x3 convolutions down to about 4x4, and a
-    linear layer: a fast stand-in for the paper's ResNet-18 on a CPU. Channels-last weights and
-    inputs make the CPU convolutions ~3x faster (oneDNN)."""
+    """A 4x4 stride-4 "patchify" convolution, strided 3x3 convolutions down to about 4x4 and a linear layer: a fast CPU
+    stand-in for the paper's ResNet-18. Channels-last weights and inputs make CPU convolutions ~3x faster (oneDNN)."""
 
     def __init__(self, size, out_dim):
         super().__init__()
@@ -124,7 +118,6 @@ class SmallCNN(nn.Module):
 # --- sequence backbones (nanoGPT blocks; an LSTM for the lstm baseline) ---
 
 class CausalSelfAttention(nn.Module):
-
     def __init__(self, cfg):
         super().__init__()
         self.n_head = cfg.n_head
@@ -134,19 +127,17 @@ class CausalSelfAttention(nn.Module):
         self.resid_drop = nn.Dropout(cfg.dropout)
 
     def forward(self, x, last_only=False):
-        B, L, D = x.shape
+        B, _, D = x.shape
         q, k, v = self.qkv(x).split(D, dim=2)
         if last_only:  # a rollout needs the last query alone; it may see every key
             q = q[:, -1:]
-        q = q.view(B, q.shape[1], self.n_head, D // self.n_head).transpose(1, 2)  # (B, h, Lq, d)
-        k, v = (t.view(B, L, self.n_head, D // self.n_head).transpose(1, 2) for t in (k, v))  # (B, h, L, d)
+        q, k, v = (t.view(B, -1, self.n_head, D // self.n_head).transpose(1, 2) for t in (q, k, v))  # (B, h, L or 1, d)
         y = F.scaled_dot_product_attention(q, k, v, is_causal=not last_only,
                                            dropout_p=self.dropout if self.training else 0.0)
-        return self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, q.shape[2], D)))
+        return self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, -1, D)))
 
 
 class Block(nn.Module):
-
     def __init__(self, cfg):
         super().__init__()
         self.ln1 = nn.LayerNorm(cfg.d_model)
@@ -171,8 +162,7 @@ class Transformer(nn.Module):
 
     def forward(self, x, last_only=False):  # (B, L, D) -> (B, L, D), or (B, 1, D) if last_only
         x = self.drop(x)
-        for i, block in enumerate(self.blocks):
-            # In the last layer only the last position's output is needed for a rollout step.
+        for i, block in enumerate(self.blocks):   # a rollout step needs the last layer's last position alone
             x = block(x, last_only and i == len(self.blocks) - 1)
         return self.ln_f(x)
 
@@ -206,8 +196,7 @@ class SkillTransformer(nn.Module):
             raise ValueError(f"d_model ({cfg.d_model}) must be divisible by n_head ({cfg.n_head})")
         if cfg.memory < 0 or (cfg.memory and cfg.memory_stride < 1):
             raise ValueError(f"memory must be >= 0 and memory_stride >= 1, got {cfg.memory}, {cfg.memory_stride}")
-        self.cfg = cfg
-        v = cfg.variant
+        self.cfg, v = cfg, cfg.variant
         self.near_index = cfg.near_index
         # Sec. 4.1: depth -> visual embedding, state -> MLP embedding, concatenated into x_t.
         self.vis = SmallCNN(cfg.depth_size, cfg.d_vis)
@@ -227,8 +216,7 @@ class SkillTransformer(nn.Module):
         Backbone = LSTMBackbone if v == "lstm" else Transformer
         self.has_skill_module = v in ("st", "lstm")
         if self.has_skill_module:
-            # Skill Inference (Sec. 4.1) with the auxiliary receptacle heads (Sec. 4.2, Eq. 3):
-            # which receptacle holds the target, and how open the target's and the goal's are.
+            # Skill Inference (Sec. 4.1) + aux heads (Sec. 4.2, Eq. 3): target's receptacle, its and the goal's openness
             self.skill_net = Backbone(cfg)
             self.skill_head = nn.Linear(cfg.d_model, cfg.n_skills)
             self.aux_head = nn.Linear(cfg.d_model, cfg.n_receptacles)
@@ -245,14 +233,11 @@ class SkillTransformer(nn.Module):
         self.arm_head = nn.Linear(cfg.d_model, ARM.stop - ARM.start)
         self.base_head = nn.Linear(cfg.d_model, BASE.stop - BASE.start)
         self.grip_head = nn.Linear(cfg.d_model, len(GRIP_VALUES))
-        self.apply(self._init_weights)
-
-    @staticmethod
-    def _init_weights(m):
-        if isinstance(m, (nn.Linear, nn.Embedding)):
-            nn.init.normal_(m.weight, std=0.02)
-            if getattr(m, "bias", None) is not None:
-                nn.init.zeros_(m.bias)
+        for m in self.modules():
+            if isinstance(m, (nn.Linear, nn.Embedding)):
+                nn.init.normal_(m.weight, std=0.02)
+                if getattr(m, "bias", None) is not None:
+                    nn.init.zeros_(m.bias)
 
     def embed_state(self, state):
         """state (..., S) -> the state MLP's embedding (..., d_state)."""
@@ -280,18 +265,16 @@ class SkillTransformer(nn.Module):
         return h if last_only or not M else h[:, M:]
 
     def infer_skill(self, x, mask, mem=None, mem_mask=None, last_only=False):
-        """Skill Inference over x (B, T, D) and memory tokens mem (B, M, D) -> skill logits
-        (B, T, n_skills), aux logits (B, T, M+1), open logits (B, T, 2) (T = 1 with last_only: the
-        current step alone, for a rollout).
-
+        """Skill Inference over x (B, T, D) and memory tokens mem (B, M, D) -> skill logits (B, T, n_skills), aux
+        logits (B, T, M+1), open logits (B, T, 2); T = 1 with last_only (the current step alone, for a rollout).
         Left padding (mask False) becomes a zero token, exactly as in a rollout's first C steps."""
         h = self._run(self.skill_net, x * mask[..., None] + self.pos_emb[:, :x.shape[1]], mem, mem_mask, last_only)
         return self.skill_head(h), self.aux_head(h), self.open_head(h)
 
     def infer_action(self, x, prev_action, mask, skill=None, rtg=None, mem=None, mem_mask=None, last_only=False):
-        """Action Inference. x (B, T, D), prev_action a_{t-1} (B, T, 10), mask (B, T) bool,
-        skill z_t ids (B, T) for st/lstm, rtg (B, T) for dt, memory tokens (B, M, D) -> dict of
-        per-step outputs (B, T, .), or of the current step alone (B, 1, .) with last_only."""
+        """Action Inference. x (B, T, D), prev_action a_{t-1} (B, T, 10), mask (B, T) bool, skill z_t ids (B, T) for
+        st/lstm, rtg (B, T) for dt, memory tokens (B, M, D) -> dict of per-step outputs (B, T, .), or of the current
+        step alone (B, 1, .) with last_only."""
         v, (B, T, D) = self.cfg.variant, x.shape
         a = (self.act_emb(prev_action),) if self.cfg.prev_action else ()  # without it: (x_t, z_t) etc.
         if v in ("st", "lstm"):
@@ -311,9 +294,8 @@ class SkillTransformer(nn.Module):
         return out
 
     def forward(self, batch):
-        """Training pass (Sec. 4.2): the true skills are the z_t tokens (teacher forcing), except,
-        in training mode, at a random skill_sample share of the steps, where z_t is the skill
-        module's own argmax at that step. It depends on x_{<=t} alone, so causality holds."""
+        """Training pass (Sec. 4.2): z_t = the true skills (teacher forcing) except, in training mode, at a random
+        skill_sample share of the steps: there the skill module's own argmax, which depends on x_{<=t} only (causal)."""
         x = self.embed_obs(batch["depth"], batch["state"])
         mem, mem_mask = (self.embed_memory(batch["mem_state"]), batch["mem_mask"]) if self.cfg.memory else (None, None)
         out, skill = {}, batch.get("skill")
@@ -328,9 +310,8 @@ class SkillTransformer(nn.Module):
         return out
 
     def compute_loss(self, out, batch, skill_weight=1.0, aux_weight=1.0, open_weight=1.0):
-        """Sec. 4.2: focal loss (skills, grip) + MSE (arm, base) + CE (aux) + BCE (open), each averaged
-        over the valid (unpadded) steps of the window. Returns a dict of the terms and "loss", their
-        sum with the skill, aux and open terms weighted (the paper's unweighted sum: weights 1)."""
+        """Sec. 4.2: focal loss (skills, grip) + MSE (arm, base) + CE (aux) + BCE (open), each averaged over the valid
+        (unpadded) steps -> dict of the terms and "loss", their sum with skill, aux, open weighted (1: the paper's)."""
         m = batch["mask"].float()
         mean = lambda l: (l * m).sum() / m.sum().clamp(min=1.0)
         act = batch["action"]
@@ -340,11 +321,10 @@ class SkillTransformer(nn.Module):
                   "grip": mean(focal_loss(out["grip_logits"], grip_target))}
         if "skill_logits" in out:
             losses["skill"] = mean(focal_loss(out["skill_logits"], batch["skill"]))  # Eq. 1
-        if "aux_logits" in out:
+        if "aux_logits" in out:   # Eq. 3; then how open each receptacle is, a fraction in [0, 1]: soft targets
             aux = F.cross_entropy(out["aux_logits"].float().flatten(0, 1), batch["receptacle"].flatten(),
                                   reduction="none").view_as(m)
-            losses["aux"] = mean(aux)  # Eq. 3
-        if "open_logits" in out:       # how open each receptacle is, a fraction in [0, 1]: soft targets
+            losses["aux"] = mean(aux)
             bce = F.binary_cross_entropy_with_logits(out["open_logits"].float(), batch["receptacle_open"],
                                                      reduction="none")
             losses["open"] = mean(bce.mean(-1))
@@ -357,8 +337,8 @@ class SkillTransformer(nn.Module):
 
 
 def focal_loss(logits, target, gamma=2.0):
-    """Focal loss (Lin et al. 2017), per element: -(1 - p_y)^gamma log p_y. It counters the skill
-    imbalance (navigate dominates, Sec. 4.2). logits (..., K), target (...) -> (...)."""
+    """Focal loss (Lin et al. 2017), per element: -(1 - p_y)^gamma log p_y. It counters the skill imbalance (navigate
+    dominates, Sec. 4.2). logits (..., K), target (...) -> (...)."""
     logp = F.log_softmax(logits.float(), dim=-1).gather(-1, target[..., None]).squeeze(-1)
     return -((1.0 - logp.exp()) ** gamma) * logp
 
@@ -377,8 +357,7 @@ def load_checkpoint(path, device="cpu"):
     needed = ("model", "model_args", "env_config", "rtg_max")
     missing = [k for k in needed if not isinstance(ckpt, dict) or k not in ckpt]
     if missing:
-        raise ValueError(f"{path}: not a Skill Transformer checkpoint (missing {missing}); "
-                         "expected the dict that train.py writes")
+        raise ValueError(f"{path}: not a Skill Transformer checkpoint (missing {missing}); expected train.py's dict")
     if "obs" not in ckpt["env_config"] or "state_layout" not in ckpt["model_args"]:
         raise ValueError(f"{path}: written before observation modes (env.EnvConfig.obs) existed; retrain it")
     return ckpt
@@ -389,22 +368,18 @@ def model_from_checkpoint(ckpt, device="cpu"):
     try:
         cfg = ModelConfig(**ckpt["model_args"])
     except TypeError as e:
-        raise ValueError(f"checkpoint model_args do not match ModelConfig ({e}): it was written by an "
-                         "older version of model.py; retrain it") from e
+        raise ValueError(f"checkpoint model_args do not match ModelConfig ({e}): older model.py; retrain it") from e
     m = SkillTransformer(cfg)
     m.load_state_dict(ckpt["model"])
     return m.to(device)
 
 
 class Policy:
-    """Acts in the env from raw observations, keeping the last C steps and the memory's older states
-    (Sec. 4.1, test time).
-
-    Per step only the new observation is encoded (past tokens are cached in a rolling, left-padded
-    window); the transformers run over the window with the *predicted* skills as z, the last layer
-    for the current step only. With batch=B it acts for B episodes at once (evaluate.py). The network
-    always runs on NET_BATCH rows, padded: a CPU's matrix kernels round differently for different
-    batch sizes, and an episode's actions must not depend on how many episodes share the call."""
+    """Acts in the env from raw observations, keeping the last C steps and the memory's older states (Sec. 4.1, test
+    time). Each step encodes only the new observation (past tokens wait in a rolling, left-padded window) and runs the
+    transformers over the window with the *predicted* skills as z, the last layer for the current step only. batch=B
+    acts for B episodes at once (evaluate.py). The network always runs on NET_BATCH rows, padded: CPU matrix kernels
+    round differently per batch size, and an episode's actions must not depend on how many episodes share the call."""
 
     def __init__(self, model, env_config, rtg_max, device="cpu", batch=1):
         self.model = model.eval()
@@ -452,8 +427,7 @@ class Policy:
 
     @torch.inference_mode()
     def act_batch(self, obs, rewards):
-        """One step of each of the B episodes: obs and rewards are lists of B -> (actions (B, 10)
-        float32, list of B skill ids)."""
+        """One step of each of B episodes: obs, rewards lists of B -> (actions (B, 10) float32, list of B skill ids)."""
         S, B, cfg = self.cfg.depth_size, self.batch, self.cfg
         if len(obs) != B:
             raise ValueError(f"got {len(obs)} observations for a policy of batch {B}")
@@ -471,12 +445,9 @@ class Policy:
         for name in ("x", "prev_action", "skill", "rtg", "mask", "states", "states_mask"):  # slide by one step
             setattr(self, name, torch.roll(getattr(self, name), -1, dims=1))
         self.states[:, -1], self.states_mask[:, -1] = s[:, 0], True
-        self.prev_action[:, -1] = self.last_action
-        self.rtg[:, -1] = self.return_to_go
-        self.mask[:, -1] = True
-        # memory step j (1..M) lies j * stride steps before the window's first step
-        C, M, H = cfg.context, cfg.memory, self.states.shape[1]
-        mem_at = [H - C - j * cfg.memory_stride for j in range(M, 0, -1)]   # oldest first
+        self.prev_action[:, -1], self.rtg[:, -1], self.mask[:, -1] = self.last_action, self.return_to_go, True
+        # memory step j (1..M) lies j * stride steps before the window's first step; oldest first
+        mem_at = [self.states.shape[1] - cfg.context - j * cfg.memory_stride for j in range(cfg.memory, 0, -1)]
         skills, actions = torch.full((P,), -1), torch.zeros(P, ACTION_DIM, device=self.device)
         for r in range(0, P, NET_BATCH):
             rows = slice(r, r + NET_BATCH)

@@ -1,14 +1,12 @@
 """Imitation learning of the Skill Transformer (and baselines) from expert demonstrations.
 
-Follows Sec. 4.2 and Appendix A of the paper: random windows of C steps from the demos, the
-losses computed at every step of the window, AdamW, an "epoch" of 80 randomly chosen
-demonstrations, a linear learning-rate warm-up from 1e-8 followed by a cosine decay to 0. The
-defaults are the README's recipe; its departures from the paper, each a flag with the experiment
-that set it (EXPERIMENTS.md): C = 15, not 30 (R20); memory tokens of older steps (R48); part of
-the steps feed action inference the skill module's own prediction instead of the true skill
-(--skill-sample 0.5; 0 is the paper's teacher forcing; R5); the skill and auxiliary losses
-weighted (R4); and the last checkpoint is kept, not the one of the best success on a few `seen`
-episodes (with the 20 or so a CPU affords, that choice is noise).
+Follows Sec. 4.2 and Appendix A of the paper: random windows of C steps from the demos, the losses computed at every
+step of the window, AdamW, an "epoch" of 80 randomly chosen demonstrations, a linear learning-rate warm-up from 1e-8
+followed by a cosine decay to 0. The defaults are the README's recipe; its departures from the paper, each a flag with
+the experiment that set it (EXPERIMENTS.md): C = 15, not 30 (R20); memory tokens of older steps (R48); part of the
+steps feed action inference the skill module's own prediction instead of the true skill (--skill-sample 0.5; 0 is the
+paper's teacher forcing; R5); the skill and auxiliary losses weighted (R4); and the last checkpoint is kept, not the
+one of the best success on a few `seen` episodes (with the 20 or so a CPU affords, that choice is noise).
 
     python train.py --data data/demos --out ckpt/st.pt                    # Skill Transformer, the recipe
     python train.py --data data/demos --out ckpt/dt.pt --variant dt       # or no_skill, lstm, dt_skill
@@ -20,11 +18,10 @@ episodes (with the 20 or so a CPU affords, that choice is noise).
     python train.py --data data/heldout --validate ckpt/st.pt,ckpt/dt.pt   # fit on held-out demos
     torchrun --nproc_per_node=2 train.py --data data/demos --out ckpt/st.pt   # DDP (gloo on CPU)
 
-For --out ckpt/st.pt it writes ckpt/st.pt (the final model), ckpt/st.last.pt (every epoch: the
-optimizer, the schedule's position and every random generator's state, so that a run killed at any
-moment and resumed ends with the same weights, bit for bit, as one never stopped) and ckpt/st.csv
-(the losses). The defaults take about 50 min alone on 2 CPU cores for 1,000 demos (~19,000
-iterations).
+For --out ckpt/st.pt it writes ckpt/st.pt (the final model), ckpt/st.last.pt (every epoch: the optimizer, the
+schedule's position and every random generator's state, so that a run killed at any moment and resumed ends with the
+same weights, bit for bit, as one never stopped) and ckpt/st.csv (the losses). The defaults take about 50 min alone on
+2 CPU cores for 1,000 demos (~19,000 iterations).
 """
 import argparse
 import contextlib
@@ -88,11 +85,10 @@ class TrainConfig:
     weight_decay: float = 0.1
     """AdamW weight decay on weight matrices (not on biases, norms, embeddings of position)"""
     prev_action: bool = False
-    """the paper's a_{t-1} tokens in action inference; off: with them the policy copies a_{t-1}
-    (the copycat problem, EXPERIMENTS.md)"""
+    """a_{t-1} tokens in action inference (paper); off: with them the policy copies a_{t-1} (copycat, EXPERIMENTS.md)"""
     skill_sample: float = 0.5
-    """st/lstm: probability that a step's z_t is the skill module's own argmax instead of the true
-    skill (scheduled sampling); 0: the paper's teacher forcing"""
+    """st/lstm: probability that a step's z_t is the skill module's own argmax instead of the true skill (scheduled
+    sampling); 0: the paper's teacher forcing"""
     skill_weight: float = 0.3
     """weight of the skill loss (Eq. 1; the paper's: 1). On data/v10 the encoder gradient norms of
     skill, aux, arm, base, grip were 2-4, 5-9, 0.2-0.9, 0.7-2.7, 0.1-0.2: at 1 they swamp the actions"""
@@ -110,16 +106,16 @@ class TrainConfig:
     """train on pieces of the demos only, e.g. nav-pick,nav-place (Sec. 5.5), an epoch taking as many
     pieces as hold demos_per_epoch demos' steps (the same budget); empty: whole demos"""
     skill: str = ""
-    """BC-Modular (Sec. 5.2): train a policy for this skill alone (no_skill variant), on the runs of
-    steps the demos label with it, an epoch drawing the runs of demos_per_epoch demos: the five
-    together take one run's budget; evaluate.py --policy modular:fixed:STEM sequences them"""
+    """BC-Modular (Sec. 5.2): train a policy for this skill alone (no_skill variant), on the runs of steps the demos
+    label with it, an epoch drawing the runs of demos_per_epoch demos: the five together take one run's budget;
+    evaluate.py --policy modular:fixed:STEM sequences them"""
     resume: bool = False
     """continue from CKPT.last.pt (same model, same data env config); without one, start fresh"""
     log_interval: int = 10
     """iterations between log lines and CSV rows (mean losses)"""
     grad_norms: bool = False
-    """also log each loss term's gradient norm on the shared encoder (five more backward passes per
-    log line; how the loss weights were chosen, EXPERIMENTS.md R4)"""
+    """also log each loss term's gradient norm on the shared encoder (five more backward passes per log line;
+    how the loss weights were chosen, EXPERIMENTS.md R4)"""
     device: str = "auto"
     """auto (cuda if available), cpu or cuda"""
     threads: int = 0
@@ -132,14 +128,15 @@ class TrainConfig:
 LOSS_TERMS = ("loss", "skill", "aux", "open", "arm", "base", "grip")
 GRAD_COLUMNS = tuple(f"grad_{k}" for k in LOSS_TERMS[1:])   # each term's gradient norm on the encoder
 CSV_FIELDS = ("epoch", "iter", "lr") + LOSS_TERMS + GRAD_COLUMNS + ("ms_iter", "samples_s")
+SEGMENTS = {"nav-pick": "pick", "nav-place": "place"}   # --segments: the skill each piece ends with (cut_segments)
+BATCH_KEYS = ("depth", "state", "action", "prev_action", "skill", "receptacle", "receptacle_open", "rtg")
 
 
 # --- learning-rate schedule (Appendix A) ---
 
 def get_lr(epoch, cfg):
-    """Learning rate at a (fractional) epoch: linear from lr_start to lr over warmup_epochs, then
-    cosine decay to 0 at cfg.epochs. The paper steps it once per epoch; we step it per iteration
-    (epoch + it / iters) because our runs have ~15x fewer epochs."""
+    """Learning rate at a (fractional) epoch: linear from lr_start to lr over warmup_epochs, then cosine decay to 0 at
+    cfg.epochs. The paper steps it once per epoch; we step it per iteration (epoch + it / iters): ~15x fewer epochs."""
     if epoch < cfg.warmup_epochs:
         return cfg.lr_start + (cfg.lr - cfg.lr_start) * epoch / cfg.warmup_epochs
     progress = min(1.0, (epoch - cfg.warmup_epochs) / max(cfg.epochs - cfg.warmup_epochs, 1e-9))
@@ -159,8 +156,7 @@ def load_meta(data_dir):
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e})") from e
     if meta.get("format") != collect.FORMAT_VERSION:
-        raise ValueError(f"{path}: data format {meta.get('format')!r}, this code reads format "
-                         f"{collect.FORMAT_VERSION}: collect the demos again")
+        raise ValueError(f"{path}: data format {meta.get('format')!r}, expected {collect.FORMAT_VERSION}: collect anew")
     mode = meta.get("env_config", {}).get("obs")
     if mode not in env.OBS_MODES:
         raise ValueError(f"{path}: env_config.obs is {mode!r}, expected one of {env.OBS_MODES}")
@@ -173,14 +169,12 @@ def load_meta(data_dir):
 
 
 def load_episode(path, size, state_dim):
-    """One demo .npz, checked by collect.load_episode -> dict of its step arrays, plus prev_action
-    (a_{t-1}) and rtg (return-to-go)."""
+    """One demo .npz, checked by collect.load_episode -> dict of its step arrays, prev_action and rtg (add_inputs)."""
     data = collect.load_episode(path, state_dim)
     if data["depth"].shape[1:] != (size, size):
         raise ValueError(f"{path}: depth has shape {data['depth'].shape}, expected (T, {size}, {size})")
-    ep = {k: data[k] for k in collect.STEP_ARRAYS}
-    ep["skill"], ep["receptacle"] = ep["skill"].astype(np.int64), ep["receptacle"].astype(np.int64)
-    return add_inputs(ep)
+    return add_inputs({k: data[k].astype(np.int64) if k in ("skill", "receptacle") else data[k]
+                       for k in collect.STEP_ARRAYS})
 
 
 def add_inputs(ep):
@@ -190,12 +184,9 @@ def add_inputs(ep):
     return ep
 
 
-SEGMENTS = {"nav-pick": "pick", "nav-place": "place"}
-
-
 def cut_segments(demos, names):
-    """Sec. 5.5, incomplete demonstrations: keep of each demo only the navigation that leads to a
-    skill plus the skill itself (nav-pick, nav-place), each piece a demo of its own."""
+    """Sec. 5.5, incomplete demonstrations: keep of each demo only the navigation that leads to a skill plus the skill
+    itself (nav-pick, nav-place), each piece a demo of its own."""
     bad = [n for n in names if n not in SEGMENTS]
     if bad:
         raise ValueError(f"segments {bad}: expected names from {tuple(SEGMENTS)}, joined by commas")
@@ -203,70 +194,61 @@ def cut_segments(demos, names):
     for ep in demos:
         for name in names:
             idx = np.flatnonzero(ep["skill"] == env.SKILL_IDS[SEGMENTS[name]])
-            if len(idx) == 0:
-                continue
-            start = idx[0]
-            while start > 0 and ep["skill"][start - 1] == nav:
-                start -= 1
-            pieces.append(add_inputs({k: ep[k][start:idx[-1] + 1] for k in collect.STEP_ARRAYS}))
+            if len(idx):
+                start = idx[0]
+                while start > 0 and ep["skill"][start - 1] == nav:
+                    start -= 1
+                pieces.append(add_inputs({k: ep[k][start:idx[-1] + 1] for k in collect.STEP_ARRAYS}))
     return pieces
 
 
 def same_steps_per_epoch(demos_per_epoch, whole, pieces):
-    """Pieces per epoch that hold as many steps as demos_per_epoch whole demos (lengths `whole`), so
-    that training on pieces gets the same iterations as on whole demos: 80 nav-pick and nav-place
-    pieces hold a third of 80 demos' steps, and the comparison would be with a third of the training."""
+    """Pieces per epoch that hold as many steps as demos_per_epoch whole demos (lengths `whole`): the same iterations
+    as on whole demos (80 nav-pick and nav-place pieces hold a third of 80 demos' steps, a third of the training)."""
     return max(1, round(demos_per_epoch * np.mean(whole) / np.mean(pieces)))
 
 
 def skill_runs(demos, skill):
-    """BC-Modular: every maximal run of steps labelled with the skill, each a demo of its own (a
-    skill policy starts from a fresh context, as the planner starts it in a rollout)."""
+    """BC-Modular: every maximal run of steps labelled with the skill, each a demo of its own (a skill policy starts
+    from a fresh context, as the planner starts it in a rollout)."""
     if skill not in env.SKILL_IDS:
         raise ValueError(f"--skill {skill!r}: expected one of {env.SKILLS}")
     pieces = []
     for ep in demos:
         edges = np.flatnonzero(np.diff(np.r_[0, (ep["skill"] == env.SKILL_IDS[skill]).astype(np.int8), 0]))
-        for a, b in zip(edges[::2], edges[1::2]):
-            pieces.append(add_inputs({k: ep[k][a:b] for k in collect.STEP_ARRAYS}))
+        pieces += [add_inputs({k: ep[k][a:b] for k in collect.STEP_ARRAYS}) for a, b in zip(edges[::2], edges[1::2])]
     if not pieces:
         raise ValueError(f"no step of the demos is labelled {skill!r}")
     return pieces
 
 
 def dict_diff(a, b):
-    """Sorted keys whose values differ between two dicts (a key missing from one counts)."""
-    return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    """'key: a vs b' for each key whose values differ between two dicts (a missing key counts); '' if none."""
+    return ", ".join(f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k))
 
 
 def load_demos(data, max_demos=0):
-    """All demos of a directory, or of several joined by commas (DAgger's aggregate: the demos and
-    the data collect.py --policy added), in memory (depth stays uint8) -> (list of episode dicts,
-    meta of the first directory)."""
+    """All demos of a directory, or of several joined by commas (DAgger's aggregate: the demos and the data
+    collect.py --policy added), in memory (depth stays uint8) -> (list of episode dicts, first directory's meta)."""
     dirs = data.split(",")
     metas = [load_meta(d) for d in dirs]
     meta, files = metas[0], []
     for d, m in zip(dirs, metas):
         diff = dict_diff(m["env_config"], meta["env_config"])
         if diff:
-            raise ValueError(f"{d}/meta.json: env_config differs from {dirs[0]}/meta.json in "
-                             + ", ".join(f"{k} ({m['env_config'].get(k)!r} vs {meta['env_config'].get(k)!r})" for k in diff))
+            raise ValueError(f"{d}/meta.json: env_config differs from {dirs[0]}/meta.json in {diff}")
         found = sorted(glob.glob(os.path.join(d, "ep_*.npz")))
         if not found:
             raise ValueError(f"no ep_*.npz files in {d!r}")
         files += found
-    if max_demos:
-        files = files[:max_demos]
-    size = int(meta["env_config"]["depth_size"])
-    state_dim = sum(n for _, n in meta["state_layout"])
-    return [load_episode(f, size, state_dim) for f in files], meta
+    size, state_dim = int(meta["env_config"]["depth_size"]), sum(n for _, n in meta["state_layout"])
+    return [load_episode(f, size, state_dim) for f in files[:max_demos or None]], meta   # max_demos 0: all
 
 
 def epoch_windows(lengths, cfg, epoch, per_epoch=0):
-    """Appendix A: an epoch draws demos_per_epoch demos (or per_epoch pieces); windows end at steps
-    drawn uniformly from theirs, as many as cover each step once, in whole batches. The same (seed,
-    epoch) gives the same windows on every rank, which takes its share of each batch.
-    -> (n, 2) int array of (demo, end step)."""
+    """Appendix A: an epoch draws demos_per_epoch demos (or per_epoch pieces); windows end at steps drawn uniformly
+    from theirs, as many as cover each step once, in whole batches. The same (seed, epoch) gives the same windows on
+    every rank, which takes its share of each batch. -> (n, 2) int array of (demo, end step)."""
     rng = np.random.default_rng([cfg.seed, epoch])
     chosen = rng.choice(len(lengths), size=min(per_epoch or cfg.demos_per_epoch, len(lengths)), replace=False)
     ends = every_step(lengths, chosen)
@@ -280,24 +262,18 @@ def every_step(lengths, demos):
     return np.concatenate([np.stack([np.full(lengths[i], i), np.arange(lengths[i])], 1) for i in demos])
 
 
-BATCH_KEYS = ("depth", "state", "action", "prev_action", "skill", "receptacle", "receptacle_open", "rtg")
-
-
 def flatten_demos(demos, device):
-    """All demos end to end in one tensor per array, on the training device (a GPU holds ~1 GB of
-    depth per 1,000 demos), so that a batch is one gather, not a Python loop over windows.
-    -> (dict of (N_steps, ...) tensors, (n_demos,) index of each demo's first step)."""
-    lengths = np.array([len(d["action"]) for d in demos])
-    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    """All demos end to end in one tensor per array on the training device (a GPU holds ~1 GB of depth per 1,000
+    demos): a batch is one gather, not a Python loop. -> ({key: (N_steps, ...) tensor}, (n_demos,) first rows)."""
+    starts = np.concatenate([[0], np.cumsum([len(d["action"]) for d in demos])[:-1]])
     flat = {k: torch.from_numpy(np.concatenate([d[k] for d in demos])).to(device) for k in BATCH_KEYS}
     return flat, torch.as_tensor(starts, device=device)
 
 
 def get_batch(flat, starts, windows, C, memory=0, stride=1):
-    """Windows (B, 2) of (demo, end step) -> batch of (B, C, ...) tensors, and the states of the
-    `memory` steps at `stride` before each window (mem_state (B, M, S), oldest first: what a
-    rollout's Policy keeps). A window that would start before step 0 is left-padded with zeros;
-    mask (mem_mask) marks the real steps, and padding is left out of every loss."""
+    """Windows (B, 2) of (demo, end step) -> batch of (B, C, ...) tensors, and the states of the `memory` steps at
+    `stride` before each window (mem_state (B, M, S), oldest first: what a rollout's Policy keeps). A window starting
+    before step 0 is left-padded with zeros; mask (mem_mask) marks the real steps; padding is out of every loss."""
     windows = torch.as_tensor(windows, device=starts.device)
     first = starts[windows[:, 0]][:, None]                              # (B, 1) row of each demo's step 0
 
@@ -339,8 +315,7 @@ def stem(path):
 
 
 def save_atomic(obj, path):
-    """torch.save to a temporary file, flushed to disk, then renamed: a kill leaves the old file or
-    the new one, never half of one."""
+    """torch.save to a temporary file, flushed to disk, then renamed: a kill leaves the old file or the new one."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "wb") as f:
@@ -351,11 +326,10 @@ def save_atomic(obj, path):
 
 
 def rng_states():
-    """Every random generator a training step may draw from (scheduled sampling and dropout draw from
-    torch's), in a form torch.load(weights_only=True) reads back."""
+    """Every random generator a training step may draw from (scheduled sampling and dropout draw from torch's), in a
+    form torch.load(weights_only=True) reads back."""
     kind, keys, pos, has_gauss, cached = np.random.get_state()
-    return {"torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+    return {"torch": torch.get_rng_state(), "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
             "numpy": (kind, torch.from_numpy(keys.astype(np.int64)), pos, has_gauss, cached),
             "python": random.getstate()}
 
@@ -369,35 +343,37 @@ def set_rng_states(s):
     random.setstate(s["python"])
 
 
-def truncate_csv(path, iter_num):
-    """Drop the log rows written after the checkpoint a resumed run restarts from (it writes them again)."""
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
+def open_log(path, iter_num=None):
+    """CKPT.csv, its header written, open to append rows -> (file, csv.DictWriter). A resumed run (iter_num) keeps the
+    old rows up to the checkpoint it restarts from (it writes the later ones again)."""
+    rows = []
+    if iter_num is not None and os.path.exists(path):
+        with open(path, newline="") as f:
+            rows = [r for r in csv.DictReader(f) if r.get("iter", "").isdigit() and int(r["iter"]) <= iter_num]
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, CSV_FIELDS, extrasaction="ignore")
         writer.writeheader()
-        writer.writerows(r for r in rows if r.get("iter", "").isdigit() and int(r["iter"]) <= iter_num)
+        writer.writerows(rows)
     os.replace(tmp, path)
+    f = open(path, "a", newline="")
+    return f, csv.DictWriter(f, CSV_FIELDS)
 
 
 def check_model_args(ckpt, margs, ckpt_path):
     """Resuming or fine-tuning needs the same network as the checkpoint's."""
-    want = asdict(margs)
     have = {**asdict(model.ModelConfig()), **ckpt["model_args"]}   # a field added later: its default
-    if have != want:
-        diff = {k: (have.get(k), want.get(k)) for k in dict_diff(have, want)}
-        raise ValueError(f"{ckpt_path}: model settings differ from the command line's "
-                         f"(checkpoint, now): {diff}")
+    diff = dict_diff(have, asdict(margs))
+    if diff:
+        raise ValueError(f"{ckpt_path}: model settings differ from the command line's (checkpoint vs now): {diff}")
 
 
 def check_env_config(ckpt, meta, ckpt_path, data_dir):
     """A model trained on one env config must not be trained or compared on data from another."""
-    a, b = ckpt["env_config"], meta["env_config"]
-    diff = dict_diff(a, b)
+    diff = dict_diff(ckpt["env_config"], meta["env_config"])
     if diff:
-        raise ValueError(f"{ckpt_path} was trained with env_config different from {data_dir}/meta.json in "
-                         f"{diff}: " + ", ".join(f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in diff))
+        raise ValueError(f"{ckpt_path} was trained with env_config different from {data_dir}/meta.json in {diff}")
 
 
 # --- training ---
@@ -407,19 +383,16 @@ def train(cfg):
     ddp = int(os.environ.get("RANK", -1)) != -1
     if cfg.device == "auto":
         cfg.device = "cuda" if torch.cuda.is_available() else "cpu"
+    rank, local_rank, world = 0, 0, 1
     if ddp:
-        backend = "nccl" if cfg.device == "cuda" else "gloo"
-        dist.init_process_group(backend, timeout=datetime.timedelta(hours=2))
+        dist.init_process_group("nccl" if cfg.device == "cuda" else "gloo", timeout=datetime.timedelta(hours=2))
         rank, local_rank, world = dist.get_rank(), int(os.environ["LOCAL_RANK"]), dist.get_world_size()
-    else:
-        rank, local_rank, world = 0, 0, 1
     device = torch.device(f"cuda:{local_rank}" if cfg.device == "cuda" else "cpu")
     if device.type == "cuda":
         torch.cuda.set_device(device)
         torch.backends.cuda.matmul.allow_tf32 = True
         torch.backends.cudnn.benchmark = True
-    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", 1))
-    torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // local_world))
+    torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // int(os.environ.get("LOCAL_WORLD_SIZE", 1))))
     if not 0 <= cfg.skill_sample <= 1:
         raise ValueError(f"skill_sample must lie in [0, 1], got {cfg.skill_sample}")
     if cfg.batch_size % world:
@@ -427,11 +400,9 @@ def train(cfg):
     B = cfg.batch_size // world  # windows per rank and step
     master = rank == 0
     log = print if master else (lambda *a, **k: None)
-    random.seed(cfg.seed + rank)
-    np.random.seed(cfg.seed + rank)
-    torch.manual_seed(cfg.seed + rank)  # dropout differs per rank; DDP broadcasts rank 0's init
-    autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda"
-                else contextlib.nullcontext())
+    for seed in (random.seed, np.random.seed, torch.manual_seed):
+        seed(cfg.seed + rank)   # dropout differs per rank; DDP broadcasts rank 0's init
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else contextlib.nullcontext()
 
     # data
     t0 = time.time()
@@ -446,22 +417,19 @@ def train(cfg):
         per_epoch = same_steps_per_epoch(cfg.demos_per_epoch, whole, [len(d["action"]) for d in demos])
     if cfg.skill:
         demos = skill_runs(demos, cfg.skill)
-        # an epoch takes the runs of demos_per_epoch demos: the skill's share of the budget
-        per_epoch = round(cfg.demos_per_epoch * len(demos) / n_demos)
+        per_epoch = round(cfg.demos_per_epoch * len(demos) / n_demos)  # the runs of demos_per_epoch demos
     lengths = [len(d["action"]) for d in demos]
     pieces = cfg.segments or (cfg.skill and "runs of " + cfg.skill)
     log(f"loaded {len(demos)} {'pieces (' + pieces + ')' if pieces else 'demos'}, {sum(lengths)} steps, "
         f"depth {demos[0]['depth'].shape[1]}px from {cfg.data} in {time.time() - t0:.1f} s")
 
     # model
-    margs = model.ModelConfig(depth_size=int(meta["env_config"]["depth_size"]),
-                              state_layout=tuple((k, n) for k, n in meta["state_layout"]),
-                              n_skills=len(env.SKILLS), n_receptacles=len(env.RECEPTACLES) + 1,
-                              context=cfg.context, memory=cfg.memory, memory_stride=cfg.memory_stride,
-                              d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
-                              d_model=cfg.d_model, near_scale=cfg.near_scale, n_layer=cfg.n_layer,
-                              n_head=cfg.n_head, dropout=cfg.dropout, variant=cfg.variant,
-                              prev_action=cfg.prev_action, skill_sample=cfg.skill_sample)
+    margs = model.ModelConfig(
+        depth_size=int(meta["env_config"]["depth_size"]), state_layout=tuple((k, n) for k, n in meta["state_layout"]),
+        n_skills=len(env.SKILLS), n_receptacles=len(env.RECEPTACLES) + 1, context=cfg.context, memory=cfg.memory,
+        memory_stride=cfg.memory_stride, d_vis=cfg.d_model // 2, d_state=cfg.d_model - cfg.d_model // 2,
+        d_model=cfg.d_model, near_scale=cfg.near_scale, n_layer=cfg.n_layer, n_head=cfg.n_head, dropout=cfg.dropout,
+        variant=cfg.variant, prev_action=cfg.prev_action, skill_sample=cfg.skill_sample)
     last_path, csv_path = stem(cfg.out) + ".last.pt", stem(cfg.out) + ".csv"
     ckpt, start_epoch, iter_num = None, 0, 0
     if cfg.resume and not os.path.isfile(last_path):
@@ -474,61 +442,47 @@ def train(cfg):
             raise ValueError(f"{last_path} was trained with --seed {ckpt['config'].get('seed')}, not {cfg.seed}")
         start_epoch, iter_num = ckpt["epoch"], ckpt["iter_num"]
         log(f"resuming {last_path} at epoch {start_epoch}")
-    net = model.SkillTransformer(margs)
+    raw = model.SkillTransformer(margs)   # net: raw, or its DDP wrapper
     stats = data_stats(demos)
     flat, starts = flatten_demos(demos, device)
     del demos  # the flat copy is all training needs
     for k in ("state_mean", "state_std", "rtg_scale"):
-        getattr(net, k).copy_(torch.as_tensor(stats[k]))
-    if ckpt is not None:
-        net.load_state_dict(ckpt["model"])
-    net.to(device)
-    log(f"{cfg.variant}: {net.num_params() / 1e6:.2f}M parameters, device {device}, world {world}, "
+        getattr(raw, k).copy_(torch.as_tensor(stats[k]))
+    raw.to(device)
+    log(f"{cfg.variant}: {raw.num_params() / 1e6:.2f}M parameters, device {device}, world {world}, "
         f"{torch.get_num_threads()} threads")
 
     # AdamW with weight decay on weight matrices only (nanoGPT)
-    params = [p for p in net.parameters() if p.requires_grad]
-    groups = [{"params": [p for p in params if p.dim() >= 2 and p is not net.pos_emb],
-               "weight_decay": cfg.weight_decay},
-              {"params": [p for p in params if p.dim() < 2 or p is net.pos_emb], "weight_decay": 0.0}]
+    params = [p for p in raw.parameters() if p.requires_grad]
+    decay = [p for p in params if p.dim() >= 2 and p is not raw.pos_emb]
+    groups = [{"params": decay, "weight_decay": cfg.weight_decay},
+              {"params": [p for p in params if p.dim() < 2 or p is raw.pos_emb], "weight_decay": 0.0}]
     opt = torch.optim.AdamW(groups, lr=cfg.lr_start, betas=(0.9, 0.95))
     if ckpt is not None:
+        raw.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         set_rng_states(ckpt["rng"][rank])   # the generators as they stood at the end of that epoch
-    raw = net
-    if ddp:
-        net = DDP(net, device_ids=[local_rank] if device.type == "cuda" else None)
+    net = DDP(raw, device_ids=[local_rank] if device.type == "cuda" else None) if ddp else raw
 
     def checkpoint(epoch, rng=None):
-        # The optimizer and generator states (2/3 of the bytes) go only into CKPT.last.pt, which
-        # --resume reads: with them the resumed run takes the very steps the uninterrupted one takes.
+        # The optimizer and generator states (2/3 of the bytes) go only into CKPT.last.pt, which --resume reads:
+        # with them the resumed run takes the very steps the uninterrupted one takes.
         return {"model": {k: v.cpu() for k, v in raw.state_dict().items()},  # loads without a GPU
-                "optimizer": opt.state_dict() if rng else None, "rng": rng,
-                "model_args": asdict(margs),
+                "optimizer": opt.state_dict() if rng else None, "rng": rng, "model_args": asdict(margs),
                 "config": asdict(cfg), "epoch": epoch, "iter_num": iter_num, "env_config": meta["env_config"],
-                "rtg_max": stats["rtg_max"], "n_demos": n_demos,
-                "skills": list(env.SKILLS)}
+                "rtg_max": stats["rtg_max"], "n_demos": n_demos, "skills": list(env.SKILLS)}
 
     # each term's gradient on the encoder that all terms train (R4), with --grad-norms only
     encoder = [p for m in (raw.vis, raw.state_mlp, raw.tok_proj) for p in m.parameters()]
     if master:
-        new_csv = ckpt is None or not os.path.exists(csv_path)
-        if not new_csv:
-            truncate_csv(csv_path, iter_num)
-        os.makedirs(os.path.dirname(os.path.abspath(csv_path)), exist_ok=True)
-        csv_file = open(csv_path, "w" if new_csv else "a", newline="")
-        writer = csv.DictWriter(csv_file, CSV_FIELDS)
-        if new_csv:
-            writer.writeheader()
-    sums, n_sum, t_start, it_done = {}, 0, time.time(), 0
-    t_int = time.time()
+        csv_file, writer = open_log(csv_path, None if ckpt is None else iter_num)
+    sums, n_sum, first_iter, t_start, t_int = {}, 0, iter_num, time.time(), time.time()
     for epoch in range(start_epoch, cfg.epochs):
         windows = epoch_windows(lengths, cfg, epoch, per_epoch)
         iters = len(windows) // cfg.batch_size
         if epoch == start_epoch:
-            unit = "pieces" if pieces else "demos"
-            log(f"epoch = {min(per_epoch or cfg.demos_per_epoch, len(lengths))} {unit}, {len(windows)} windows of "
-                f"{cfg.context} steps, {iters} iterations of {cfg.batch_size} windows")
+            log(f"epoch = {min(per_epoch or cfg.demos_per_epoch, len(lengths))} {'pieces' if pieces else 'demos'}, "
+                f"{len(windows)} windows of {cfg.context} steps, {iters} iterations of {cfg.batch_size} windows")
         raw.train()
         for it in range(iters):
             lr = get_lr(epoch + it / iters, cfg)
@@ -549,17 +503,14 @@ def train(cfg):
                 torch.nn.utils.clip_grad_norm_(raw.parameters(), cfg.grad_clip)
             opt.step()
             iter_num += 1
-            it_done += 1
             for k, v in losses.items():
                 sums[k] = sums.get(k, 0.0) + v.item()
             n_sum += 1
             if logging:
                 dt = (time.time() - t_int) / n_sum
-                rate = (time.time() - t_start) / it_done
-                eta = rate * ((cfg.epochs - epoch - 1) * iters + iters - it - 1)
+                eta = (time.time() - t_start) / (iter_num - first_iter) * ((cfg.epochs - epoch) * iters - it - 1)
                 row = {"epoch": epoch + 1, "iter": iter_num, "lr": lr, "ms_iter": round(dt * 1e3, 1),
-                       "samples_s": round(cfg.batch_size / dt, 1), **{k: v / n_sum for k, v in sums.items()},
-                       **grads}
+                       "samples_s": round(cfg.batch_size / dt, 1), **{k: v / n_sum for k, v in sums.items()}, **grads}
                 writer.writerow(row)
                 csv_file.flush()
                 terms = " ".join(f"{k} {sums[k] / n_sum:.4f}" for k in LOSS_TERMS[1:] if k in sums)
@@ -569,9 +520,8 @@ def train(cfg):
                 sums, n_sum, t_int = {}, 0, time.time()
 
         # end of epoch: rank 0 saves CKPT.last.pt, which --resume reads, with every rank's generators
-        rng = [rng_states()]
+        rng = [rng_states()] * world   # DDP: all_gather_object puts each rank's in its place
         if ddp:
-            rng = [None] * world
             dist.all_gather_object(rng, rng_states())
         if master:
             save_atomic(checkpoint(epoch + 1, rng), last_path)
@@ -592,15 +542,13 @@ def train(cfg):
 
 @torch.no_grad()
 def validate(cfg):
-    """Per skill of the demos' labels: arm and base MSE and grip accuracy of the action at every step
-    (its window the C steps up to it), with the true skills as z (teacher forcing, as trained) and,
-    for st and lstm, with the skill module's own argmax (as in a rollout: the "_zpred" columns), and
-    the skill module's accuracy against the labels. -> {checkpoint: {skill: {metric: value}}}"""
+    """Per skill of the demos' labels: arm and base MSE and grip accuracy of the action at every step (its window the
+    C steps up to it), with the true skills as z (teacher forcing, as trained) and, for st and lstm, the skill module's
+    argmax (as in a rollout: "_zpred" columns), and its accuracy. -> {checkpoint: {skill: {metric: value}}}"""
     torch.set_num_threads(cfg.threads or os.cpu_count() or 1)
     demos, meta = load_demos(cfg.data, cfg.max_demos)
     flat, starts = flatten_demos(demos, "cpu")
-    lengths = [len(d["action"]) for d in demos]
-    ends = every_step(lengths, range(len(demos)))
+    ends = every_step([len(d["action"]) for d in demos], range(len(demos)))
     results = {}
     for path in cfg.validate.split(","):
         ckpt = model.load_checkpoint(path)
